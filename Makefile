@@ -1,0 +1,55 @@
+# febed — every target sets itself up on a fresh Debian 12 machine.
+SHELL := /bin/bash
+VENV  := .venv
+PY    := $(VENV)/bin/python
+STAMP := $(VENV)/.febed-setup
+DEB_PKGS := python3-dolfinx python3-petsc4py python3-mpi4py python3-numba python3-gmsh python3-pytest \
+            python3-matplotlib python3-h5py python3-scipy python3-venv python3-pip python3-setuptools \
+            openmpi-bin
+# root needs sudo-less apt and mpirun --allow-run-as-root; a normal user needs sudo for apt only.
+IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
+SUDO    := $(if $(IS_ROOT),,sudo)
+MPIRUN  := mpirun $(if $(IS_ROOT),--allow-run-as-root) --oversubscribe -n 2
+PYTEST  := $(PY) -m pytest
+export OMPI_MCA_rmaps_base_oversubscribe := 1
+export NUMBA_CACHE_DIR := $(CURDIR)/.venv/numba-cache
+
+.PHONY: setup demo test test-serial test-mpi test-all bench lint clean
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@missing=""; for p in $(DEB_PKGS); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "febed setup: installing Debian packages:$$missing"; \
+	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q $$missing; \
+	fi
+	[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
+	$(PY) -m pip install -q --no-build-isolation -e '.[dev]'
+	@touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/febed demo
+
+test: setup test-serial test-mpi
+
+test-serial: setup
+	$(PYTEST) -m "not slow"
+
+test-mpi: setup
+	$(MPIRUN) $(PY) -m pytest -m "mpi and not slow" -q
+
+test-all: setup
+	$(PYTEST)
+	$(MPIRUN) $(PY) -m pytest -m mpi -q
+
+bench: setup
+	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+lint: setup
+	$(VENV)/bin/ruff check febed tests benchmarks demos
+	$(VENV)/bin/ruff format --check febed tests benchmarks demos
+
+clean:
+	rm -rf $(VENV) .venv/numba-cache

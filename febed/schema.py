@@ -1,0 +1,249 @@
+"""Declarations of every case parameter: default, unit, allowed range or choices, help text.
+
+This is the one place a parameter is declared (STYLE.md item 7). `febed/case.py` validates against it,
+`febed params` prints it, and the resolved case written into each output folder is generated from it.
+To add a parameter, add one `Param(...)` line to its section below and read it as `case.<section>.<key>`.
+
+Choices may be a tuple or a `Registry` (drag laws, contact laws, ...): the registry lists the names of
+the closures its module registered, so adding a law needs no edit here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from febed.registry import Registry
+
+# Registries of physics closures; each module registers its laws with `@REGISTRY.register(name)`.
+CONTACT_LAWS = Registry("contact law", "febed.dem.contact")
+INTEGRATORS = Registry("integrator", "febed.dem.integrate")
+DRAG_LAWS = Registry("drag law", "febed.coupling.drag")
+
+_TYPE_NAMES = {float: "a number", int: "an integer", bool: "true or false", str: "a string", list: "a list"}
+
+
+@dataclass(frozen=True)
+class Param:
+    """One case parameter.
+
+    Attributes:
+        default: value when the case does not set it (None: unset / derived at run time).
+        unit: SI unit, "" if dimensionless, "-" for names and switches.
+        help: one sentence for `febed params`.
+        type: float, int, bool, str or list (a list of numbers, see `length`).
+        lo, hi: inclusive bounds for numbers (list entries too); `lo_open` makes the lower bound strict.
+        choices: allowed values for strings: a tuple or a Registry.
+        length: required length of a list (None: any length >= 1).
+    """
+
+    default: Any
+    unit: str
+    help: str
+    type: type = float
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    choices: tuple[str, ...] | Registry | None = None
+    length: int | None = None
+
+    def allowed(self) -> str:
+        """Human-readable description of the allowed values."""
+        if self.choices is not None:
+            names = self.choice_names()
+            return "one of " + ", ".join(repr(c) for c in names)
+        what = _TYPE_NAMES[self.type]
+        if self.type is list:
+            what = f"a list of {self.length} numbers" if self.length else "a list of numbers"
+        rng = []
+        if self.lo is not None:
+            rng.append(f"{'>' if self.lo_open else '>='} {self.lo:g}")
+        if self.hi is not None:
+            rng.append(f"<= {self.hi:g}")
+        return what + (" " + " and ".join(rng) if rng else "")
+
+    def choice_names(self) -> list[str]:
+        """The valid choices (imports the registry's module if needed)."""
+        if isinstance(self.choices, Registry):
+            return self.choices.names()
+        return list(self.choices or ())
+
+    def _in_range(self, x: float) -> bool:
+        if isinstance(x, float) and math.isnan(x):
+            return False
+        if self.lo is not None and (x < self.lo or (self.lo_open and x == self.lo)):
+            return False
+        return not (self.hi is not None and x > self.hi)
+
+    def check(self, value: Any) -> tuple[Any, str | None]:
+        """Return (converted value, None) or (None, message saying what is allowed)."""
+        t = self.type
+        bad = (None, f"expected {self.allowed()}")
+        if t is bool:
+            return (value, None) if isinstance(value, bool) else bad
+        if t is int:
+            if isinstance(value, bool) or not isinstance(value, int):
+                return bad
+            return (value, None) if self._in_range(value) else bad
+        if t is float:
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                return bad
+            value = float(value)
+            return (value, None) if self._in_range(value) else bad
+        if t is str:
+            if not isinstance(value, str):
+                return bad
+            if self.choices is not None and value not in self.choice_names():
+                return bad
+            return value, None
+        if t is list:
+            if not isinstance(value, list) or not value:
+                return bad
+            if self.length is not None and len(value) != self.length:
+                return bad
+            if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
+                return bad
+            value = [float(x) for x in value]
+            return (value, None) if all(self._in_range(x) for x in value) else bad
+        raise TypeError(f"unsupported parameter type {t}")
+
+
+INF = math.inf
+
+SCHEMA: dict[str, dict[str, Param]] = {
+    "run": {
+        "name": Param("", "-", "case name (output folder name); default: the case file's stem", str),
+        "mode": Param(
+            "cfd-dem",
+            "-",
+            "what is solved: coupled gas and particles, particles only, or gas only with a given void fraction",
+            str,
+            choices=("cfd-dem", "dem", "gas"),
+        ),
+        "end_time": Param(1.0, "s", "simulated time at which the run stops", float, lo=0.0, lo_open=True),
+        "gravity": Param(9.81, "m/s^2", "gravity magnitude, along -z in 3D and -y in 2D", float, lo=0.0),
+        "seed": Param(12345, "-", "random seed (insertion, coarse-grain placement)", int, lo=0),
+    },
+    "mesh": {
+        "file": Param("", "-", "gmsh .msh file with named physical groups (relative to the case file)", str),
+        "builtin": Param(
+            "",
+            "-",
+            "a built-in seed geometry instead of a file",
+            str,
+            choices=("", "pseudo2d", "wang2d", "cylinder"),
+        ),
+        "level": Param(
+            "coarse",
+            "-",
+            "built-in mesh level (pseudo2d: Table 2 of seed 001)",
+            str,
+            choices=("coarse", "intermediate", "fine"),
+        ),
+        "cell": Param(
+            "hexahedron",
+            "-",
+            "built-in cell type; 2D geometries use quadrilateral/triangle",
+            str,
+            choices=("hexahedron", "tetrahedron", "quadrilateral", "triangle"),
+        ),
+        "size": Param(0.005, "m", "target cell size of unstructured built-in meshes", float, lo=0.0, lo_open=True),
+        "depth": Param(
+            0.0,
+            "m",
+            "2D meshes: depth that turns cell areas into volumes; 0 = one particle diameter",
+            float,
+            lo=0.0,
+        ),
+    },
+    "gas": {
+        "density": Param(1.2, "kg/m^3", "gas density (constant: incompressible VANS)", float, lo=0.0, lo_open=True),
+        "viscosity": Param(1.8e-5, "Pa s", "gas dynamic viscosity", float, lo=0.0, lo_open=True),
+        "les": Param("none", "-", "subgrid model", str, choices=("none", "smagorinsky")),
+        "smagorinsky_cs": Param(0.17, "", "Smagorinsky constant C_s (filter width = cell size)", float, lo=0.0, hi=1.0),
+        "cfl": Param(0.2, "", "largest convective CFL number of the gas step (seed 001 sec 2.4.1)", float, lo=0.0, lo_open=True),
+        "fourier": Param(0.15, "", "largest Fourier (viscous) number of the gas step", float, lo=0.0, lo_open=True),
+        "dt_min": Param(1e-6, "s", "smallest gas time step allowed", float, lo=0.0, lo_open=True),
+        "dt_max": Param(1e-3, "s", "largest gas time step allowed", float, lo=0.0, lo_open=True),
+        "void_fraction": Param(
+            1.0, "", "gas-only mode: uniform void fraction of the porous medium", float, lo=0.0, lo_open=True, hi=1.0
+        ),
+    },
+    "particles": {
+        "diameter": Param(1e-3, "m", "particle diameter (of original particles when coarse-graining)", float, lo=0.0, lo_open=True),
+        "density": Param(2500.0, "kg/m^3", "particle material density", float, lo=0.0, lo_open=True),
+        "count": Param(0, "-", "number of particles to insert (or give bed_mass)", int, lo=0),
+        "bed_mass": Param(0.0, "kg", "mass of particles to insert (or give count)", float, lo=0.0),
+        "insertion": Param("random", "-", "how inserted particles are placed", str, choices=("random", "lattice")),
+        "region": Param(
+            [-INF, -INF, -INF, INF, INF, INF],
+            "m",
+            "insertion box [xmin, ymin, zmin, xmax, ymax, zmax]; infinite bounds are clipped to the mesh",
+            list,
+            length=6,
+        ),
+        "bed_file": Param("", "-", "packed bed (.npz) to load instead of inserting (relative to the case file)", str),
+        "pack_if_missing": Param(True, "-", "if bed_file does not exist, insert and settle a bed and save it there", bool),
+        "settle_energy": Param(
+            1e-9, "J", "settling stops when the mean kinetic energy per particle falls below this", float, lo=0.0, lo_open=True
+        ),
+        "rotation": Param(True, "-", "integrate particle rotation (seed 001 switches it off)", bool),
+    },
+    "contact": {
+        "model": Param("linear-history", "-", "contact law", str, choices=CONTACT_LAWS),
+        "stiffness": Param(1000.0, "N/m", "normal spring stiffness k_n (seed 001 eq 8)", float, lo=0.0, lo_open=True),
+        "tangential_ratio": Param(2.0 / 7.0, "", "k_t / k_n for linear-history", float, lo=0.0),
+        "from_material": Param(False, "-", "derive k_n, k_t from young_modulus and poisson (seed 000 eqs 10-15)", bool),
+        "young_modulus": Param(1e7, "Pa", "Young's modulus E (when from_material)", float, lo=0.0, lo_open=True),
+        "poisson": Param(0.3, "", "Poisson ratio sigma (when from_material)", float, lo=0.0, hi=0.5),
+        "restitution_pp": Param(0.9, "", "particle-particle normal restitution e_p", float, lo=0.0, lo_open=True, hi=1.0),
+        "restitution_pw": Param(0.9, "", "particle-wall normal restitution e_w", float, lo=0.0, lo_open=True, hi=1.0),
+        "friction_pp": Param(0.3, "", "particle-particle Coulomb friction mu_p", float, lo=0.0),
+        "friction_pw": Param(0.3, "", "particle-wall Coulomb friction mu_w", float, lo=0.0),
+        "integrator": Param("rk2", "-", "particle time integrator (seed 001 eqs 40-41: rk2)", str, choices=INTEGRATORS),
+        "dt_factor": Param(6.0, "", "DEM step = contact time T_C / dt_factor (seed 001 eq 42)", float, lo=1.0),
+        "skin": Param(0.1, "", "neighbour-list skin as a fraction of the largest diameter", float, lo=0.0, lo_open=True, hi=2.0),
+    },
+    "coupling": {
+        "drag": Param("gidaspow-blend", "-", "drag closure", str, choices=DRAG_LAWS),
+        "pressure_gradient": Param(True, "-", "include the pressure-gradient force -V_p grad p (seed 001 eq 27)", bool),
+        "filter_passes": Param(1, "-", "passes of the conservative neighbour filter (seed 001 eqs 31-34)", int, lo=0, hi=20),
+        "void_fraction_floor": Param(0.3, "", "void fraction is clipped below this (clipped nodes reported)", float, lo=0.0, hi=1.0),
+    },
+    "coarse_grain": {
+        "model": Param(
+            "none",
+            "-",
+            "coarse-graining: none, traditional parcels (tm), rho d^2 rule (scg), dynamic groups (pcpm)",
+            str,
+            choices=("none", "tm", "scg", "pcpm"),
+        ),
+        "ratio": Param(1.0, "", "coarse-grain ratio l = d_parcel / d_original", float, lo=1.0),
+    },
+    "output": {
+        "directory": Param("", "-", "output folder; default ./runs/<case name>", str),
+        "field_interval": Param(0.05, "s", "simulated time between field (XDMF) outputs", float, lo=0.0, lo_open=True),
+        "particle_interval": Param(0.05, "s", "simulated time between particle outputs", float, lo=0.0, lo_open=True),
+        "probe_interval": Param(1e-3, "s", "simulated time between probe rows", float, lo=0.0, lo_open=True),
+        "checkpoint_interval": Param(INF, "s", "simulated time between checkpoints", float, lo=0.0, lo_open=True),
+        "keep_checkpoints": Param(2, "-", "how many recent checkpoints are kept", int, lo=1),
+        "progress_interval": Param(2.0, "s", "wall-clock seconds between progress lines", float, lo=0.0, lo_open=True),
+    },
+}
+
+BOUNDARY: dict[str, Param] = {
+    "type": Param("wall", "-", "boundary condition on the facets of this mesh tag", str, choices=("inlet", "wall", "outlet", "symmetry")),
+    "velocity": Param(None, "m/s", "inlet: superficial velocity U_f (mass inflow rho U_f A whatever eps)", float, lo=0.0),
+    "ramp_time": Param(0.0, "s", "inlet: ramp the velocity linearly from 0 over this time", float, lo=0.0),
+    "slip": Param(False, "-", "wall: slip (true) or no-slip (false) for the gas", bool),
+    "pressure": Param(0.0, "Pa", "outlet: dynamic pressure", float),
+    "particles": Param(True, "-", "wall: particles collide with these facets (outlet: particles leave)", bool),
+}
+
+
+def describe(section: str, key: str, par: Param) -> str:
+    """One line for `febed params`: key, default, unit, allowed values, help."""
+    default = "(unset)" if par.default is None else par.default
+    unit = f" [{par.unit}]" if par.unit not in ("", "-") else ""
+    return f"{section}.{key} = {default!r}{unit}  -- {par.help}; {par.allowed()}"
