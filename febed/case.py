@@ -269,7 +269,7 @@ def _validate(raw: dict[str, Any], path: Path | None, check_files: bool) -> tupl
 def _check_table(where: str, table: dict[str, Any], params: dict[str, Param]) -> tuple[dict, list[str]]:
     values: dict[str, Any] = {}
     problems: list[str] = []
-    for key, val in table.items():
+    for key in table:
         if key not in params:
             problems.append(f"{where} unknown key {key!r}: {_nearest(key, list(params))}")
     for key, par in params.items():

@@ -162,7 +162,9 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "viscosity": Param(1.8e-5, "Pa s", "gas dynamic viscosity", float, lo=0.0, lo_open=True),
         "les": Param("none", "-", "subgrid model", str, choices=("none", "smagorinsky")),
         "smagorinsky_cs": Param(0.17, "", "Smagorinsky constant C_s (filter width = cell size)", float, lo=0.0, hi=1.0),
-        "cfl": Param(0.2, "", "largest convective CFL number of the gas step (seed 001 sec 2.4.1)", float, lo=0.0, lo_open=True),
+        "cfl": Param(
+            0.2, "", "largest convective CFL number of the gas step (seed 001 sec 2.4.1)", float, lo=0.0, lo_open=True
+        ),
         "fourier": Param(0.15, "", "largest Fourier (viscous) number of the gas step", float, lo=0.0, lo_open=True),
         "dt_min": Param(1e-6, "s", "smallest gas time step allowed", float, lo=0.0, lo_open=True),
         "dt_max": Param(1e-3, "s", "largest gas time step allowed", float, lo=0.0, lo_open=True),
@@ -171,7 +173,9 @@ SCHEMA: dict[str, dict[str, Param]] = {
         ),
     },
     "particles": {
-        "diameter": Param(1e-3, "m", "particle diameter (of original particles when coarse-graining)", float, lo=0.0, lo_open=True),
+        "diameter": Param(
+            1e-3, "m", "particle diameter (of original particles when coarse-graining)", float, lo=0.0, lo_open=True
+        ),
         "density": Param(2500.0, "kg/m^3", "particle material density", float, lo=0.0, lo_open=True),
         "count": Param(0, "-", "number of particles to insert (or give bed_mass)", int, lo=0),
         "bed_mass": Param(0.0, "kg", "mass of particles to insert (or give count)", float, lo=0.0),
@@ -184,9 +188,16 @@ SCHEMA: dict[str, dict[str, Param]] = {
             length=6,
         ),
         "bed_file": Param("", "-", "packed bed (.npz) to load instead of inserting (relative to the case file)", str),
-        "pack_if_missing": Param(True, "-", "if bed_file does not exist, insert and settle a bed and save it there", bool),
+        "pack_if_missing": Param(
+            True, "-", "if bed_file does not exist, insert and settle a bed and save it there", bool
+        ),
         "settle_energy": Param(
-            1e-9, "J", "settling stops when the mean kinetic energy per particle falls below this", float, lo=0.0, lo_open=True
+            1e-9,
+            "J",
+            "settling stops when the mean kinetic energy per particle falls below this",
+            float,
+            lo=0.0,
+            lo_open=True,
         ),
         "rotation": Param(True, "-", "integrate particle rotation (seed 001 switches it off)", bool),
     },
@@ -197,19 +208,27 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "from_material": Param(False, "-", "derive k_n, k_t from young_modulus and poisson (seed 000 eqs 10-15)", bool),
         "young_modulus": Param(1e7, "Pa", "Young's modulus E (when from_material)", float, lo=0.0, lo_open=True),
         "poisson": Param(0.3, "", "Poisson ratio sigma (when from_material)", float, lo=0.0, hi=0.5),
-        "restitution_pp": Param(0.9, "", "particle-particle normal restitution e_p", float, lo=0.0, lo_open=True, hi=1.0),
+        "restitution_pp": Param(
+            0.9, "", "particle-particle normal restitution e_p", float, lo=0.0, lo_open=True, hi=1.0
+        ),
         "restitution_pw": Param(0.9, "", "particle-wall normal restitution e_w", float, lo=0.0, lo_open=True, hi=1.0),
         "friction_pp": Param(0.3, "", "particle-particle Coulomb friction mu_p", float, lo=0.0),
         "friction_pw": Param(0.3, "", "particle-wall Coulomb friction mu_w", float, lo=0.0),
         "integrator": Param("rk2", "-", "particle time integrator (seed 001 eqs 40-41: rk2)", str, choices=INTEGRATORS),
         "dt_factor": Param(6.0, "", "DEM step = contact time T_C / dt_factor (seed 001 eq 42)", float, lo=1.0),
-        "skin": Param(0.1, "", "neighbour-list skin as a fraction of the largest diameter", float, lo=0.0, lo_open=True, hi=2.0),
+        "skin": Param(
+            0.1, "", "neighbour-list skin as a fraction of the largest diameter", float, lo=0.0, lo_open=True, hi=2.0
+        ),
     },
     "coupling": {
         "drag": Param("gidaspow-blend", "-", "drag closure", str, choices=DRAG_LAWS),
         "pressure_gradient": Param(True, "-", "include the pressure-gradient force -V_p grad p (seed 001 eq 27)", bool),
-        "filter_passes": Param(1, "-", "passes of the conservative neighbour filter (seed 001 eqs 31-34)", int, lo=0, hi=20),
-        "void_fraction_floor": Param(0.3, "", "void fraction is clipped below this (clipped nodes reported)", float, lo=0.0, hi=1.0),
+        "filter_passes": Param(
+            1, "-", "passes of the conservative neighbour filter (seed 001 eqs 31-34)", int, lo=0, hi=20
+        ),
+        "void_fraction_floor": Param(
+            0.3, "", "void fraction is clipped below this (clipped nodes reported)", float, lo=0.0, hi=1.0
+        ),
     },
     "coarse_grain": {
         "model": Param(
@@ -233,8 +252,16 @@ SCHEMA: dict[str, dict[str, Param]] = {
 }
 
 BOUNDARY: dict[str, Param] = {
-    "type": Param("wall", "-", "boundary condition on the facets of this mesh tag", str, choices=("inlet", "wall", "outlet", "symmetry")),
-    "velocity": Param(None, "m/s", "inlet: superficial velocity U_f (mass inflow rho U_f A whatever eps)", float, lo=0.0),
+    "type": Param(
+        "wall",
+        "-",
+        "boundary condition on the facets of this mesh tag",
+        str,
+        choices=("inlet", "wall", "outlet", "symmetry"),
+    ),
+    "velocity": Param(
+        None, "m/s", "inlet: superficial velocity U_f (mass inflow rho U_f A whatever eps)", float, lo=0.0
+    ),
     "ramp_time": Param(0.0, "s", "inlet: ramp the velocity linearly from 0 over this time", float, lo=0.0),
     "slip": Param(False, "-", "wall: slip (true) or no-slip (false) for the gas", bool),
     "pressure": Param(0.0, "Pa", "outlet: dynamic pressure", float),
