@@ -1,0 +1,430 @@
+"""Meshes: gmsh builders for the seed geometries, and `.msh` -> distributed DOLFINx mesh + named tags.
+
+Built-in geometries (SI units), each with named facet groups:
+
+* `pseudo2d` — seed 001's bed, box x in [0, 0.08], y in [0, 0.015], z in [0, 0.25]. Structured hexahedra
+  with exactly the cell counts of seed 001 Table 2 (coarse 17x3x55, intermediate 35x6x110, fine
+  70x12x220) and a centred `bottom_wall` patch of 3x3 / 5x4 / 10x8 bottom cells where no gas enters;
+  or unstructured tetrahedra of a chosen size. Tags `inlet`, `bottom_wall`, `walls`, `outlet`.
+* `wang2d` — seed 000's 2D bed, 0.09 m x 0.5 m, 18 x 100 quadrilaterals (5 mm), or the same grid split
+  into triangles. Tags `inlet`, `walls`, `outlet`.
+* `cylinder` — a cylindrical bed (diameter 0.05 m, height 0.15 m, axis z) in tetrahedra of a chosen size,
+  to show that any gmsh geometry works. Tags `inlet`, `walls`, `outlet`.
+
+Any other `.msh` works if its cells and boundary facets carry *named* physical groups. The gmsh sources
+of the built-in meshes are written by `write_geo` into `meshes/` for reference; the builders below are
+the same geometry through gmsh's Python API.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+
+# Seed 001 Table 2: cells (Nx, Ny, Nz) and bottom-wall patch cells (Nx, Ny).
+PSEUDO2D_BOX = (0.08, 0.015, 0.25)
+PSEUDO2D_LEVELS = {
+    "coarse": ((17, 3, 55), (3, 3)),
+    "intermediate": ((35, 6, 110), (5, 4)),
+    "fine": ((70, 12, 220), (10, 8)),
+}
+WANG2D_BOX = (0.09, 0.5)
+WANG2D_CELLS = (18, 100)
+CYLINDER = {"diameter": 0.05, "height": 0.15}
+GEOMETRIES = ("pseudo2d", "wang2d", "cylinder")
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be used, with a message naming the file and what is wrong."""
+
+
+@dataclass
+class MeshData:
+    """A distributed DOLFINx mesh with its facet tags addressed by name."""
+
+    mesh: object  # dolfinx.mesh.Mesh
+    facet_tags: object  # dolfinx.mesh.MeshTags on facets, values = physical-group ids
+    cell_tags: object  # dolfinx.mesh.MeshTags on cells
+    tags: dict[str, int]  # facet tag name -> physical id
+    source: str = ""
+
+    @property
+    def gdim(self) -> int:
+        """Geometric dimension (2 or 3)."""
+        return self.mesh.geometry.dim
+
+    @property
+    def comm(self):
+        """The mesh's MPI communicator."""
+        return self.mesh.comm
+
+    def facets(self, name: str) -> np.ndarray:
+        """Local facet indices (this rank) carrying the tag `name`."""
+        tag = self.tag_id(name)
+        return self.facet_tags.indices[self.facet_tags.values == tag]
+
+    def tag_id(self, name: str) -> int:
+        """The physical id of facet tag `name`; MeshError listing the tags if it does not exist."""
+        if name not in self.tags:
+            raise MeshError(f"{self.source}: no facet tag {name!r}; the mesh has: {', '.join(sorted(self.tags))}")
+        return self.tags[name]
+
+    def require_tags(self, names, what: str = "the case") -> None:
+        """Raise MeshError if any of `names` is not a facet tag of the mesh."""
+        missing = [n for n in names if n not in self.tags]
+        if missing:
+            raise MeshError(
+                f"{self.source}: {what} names facet tag(s) {', '.join(map(repr, missing))} that the mesh "
+                f"lacks; the mesh has: {', '.join(sorted(self.tags)) or '(no named facet groups)'}"
+            )
+
+    def boundary_facet_coords(self, names) -> np.ndarray:
+        """Vertex coordinates (nf, nv, 3) of every facet tagged with one of `names`, whole mesh, every rank.
+
+        Each facet appears exactly once (owned facets gathered from all ranks). nv = 3 (triangle) or
+        4 (quadrilateral, in cyclic order) in 3D, 2 in 2D; the z column is 0 in 2D.
+        """
+        from dolfinx.cpp.mesh import entities_to_geometry
+
+        mesh = self.mesh
+        tdim = mesh.topology.dim
+        fdim = tdim - 1
+        mesh.topology.create_connectivity(fdim, tdim)
+        imap = mesh.topology.index_map(fdim)
+        facets = np.concatenate([self.facets(n) for n in names]) if names else np.empty(0, np.int32)
+        facets = np.unique(facets[facets < imap.size_local]).astype(np.int32)
+        geom = entities_to_geometry(mesh._mesh, fdim, facets, False) if facets.size else np.empty((0, 2), np.int32)
+        x = mesh.geometry.x
+        nv = geom.shape[1] if facets.size else {1: 2, 2: 3}.get(fdim, 2)
+        if mesh.topology.cell_type.name in ("hexahedron",) and nv == 4:
+            geom = geom[:, [0, 1, 3, 2]]  # DOLFINx quad facets are tensor-ordered; make them cyclic
+        coords = x[geom] if facets.size else np.empty((0, nv, 3))
+        parts = mesh.comm.allgather(np.ascontiguousarray(coords, dtype=np.float64).reshape(-1, nv, 3))
+        return np.concatenate(parts, axis=0)
+
+
+# -------------------------------------------------------------------------------------------- building
+
+
+_GMSH_READY = False
+
+
+def _gmsh():
+    """The gmsh module, initialised once per process (gmsh 4.8 has no isInitialized())."""
+    global _GMSH_READY
+    import gmsh
+
+    if not _GMSH_READY:
+        gmsh.initialize([], False)
+        _GMSH_READY = True
+    gmsh.option.setNumber("General.Terminal", 0)
+    return gmsh
+
+
+def _split(n: int, k: int) -> list[int]:
+    """Cell counts of the three strips [side, patch, side] of a centred patch of k cells among n."""
+    if k > n or (n - k) % 2:
+        raise MeshError(f"a patch of {k} cells cannot be centred among {n}")
+    s = (n - k) // 2
+    return [c for c in (s, k, s) if c > 0] if s else [k]
+
+
+def _pseudo2d(gmsh, level: str, cell: str, size: float) -> None:
+    lx, ly, lz = PSEUDO2D_BOX
+    (nx, ny, nz), (px, py) = PSEUDO2D_LEVELS[level]
+    geo = gmsh.model.geo
+    sx, sy = _split(nx, px), _split(ny, py)
+    xs = np.concatenate([[0], np.cumsum(sx)]) * lx / nx
+    ys = np.concatenate([[0], np.cumsum(sy)]) * ly / ny
+    structured = cell == "hexahedron"
+    h = lx / nx if structured else size
+    pts = {(i, j): geo.addPoint(xs[i], ys[j], 0.0, h) for i in range(len(xs)) for j in range(len(ys))}
+    hl = {(i, j): geo.addLine(pts[i, j], pts[i + 1, j]) for i in range(len(sx)) for j in range(len(ys))}
+    vl = {(i, j): geo.addLine(pts[i, j], pts[i, j + 1]) for i in range(len(xs)) for j in range(len(sy))}
+    surfaces = {}
+    for i in range(len(sx)):
+        for j in range(len(sy)):
+            loop = geo.addCurveLoop([hl[i, j], vl[i + 1, j], -hl[i, j + 1], -vl[i, j]])
+            surfaces[i, j] = geo.addPlaneSurface([loop])
+    if structured:
+        for (i, _j), line in hl.items():
+            geo.mesh.setTransfiniteCurve(line, sx[i] + 1)
+        for (_i, j), line in vl.items():
+            geo.mesh.setTransfiniteCurve(line, sy[j] + 1)
+        for s in surfaces.values():
+            geo.mesh.setTransfiniteSurface(s)
+            geo.mesh.setRecombine(2, s)
+    dimtags = [(2, s) for s in surfaces.values()]
+    if structured:
+        geo.extrude(dimtags, 0, 0, lz, numElements=[nz], recombine=True)
+    else:
+        geo.extrude(dimtags, 0, 0, lz)
+    geo.synchronize()
+    patch = (len(sx) // 2, len(sy) // 2)
+    patch_surface = surfaces[patch]
+    _tag_boundaries(
+        gmsh,
+        3,
+        lambda c, tag: (
+            ("bottom_wall" if tag == patch_surface else "inlet")
+            if np.isclose(c[2], 0)
+            else "outlet"
+            if np.isclose(c[2], lz)
+            else "walls"
+            if (np.isclose(c[0], 0) or np.isclose(c[0], lx) or np.isclose(c[1], 0) or np.isclose(c[1], ly))
+            else None
+        ),
+    )
+    if not structured:
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+
+
+def _wang2d(gmsh, cell: str) -> None:
+    lx, ly = WANG2D_BOX
+    nx, ny = WANG2D_CELLS
+    geo = gmsh.model.geo
+    p = [geo.addPoint(*xy, 0.0) for xy in ((0, 0), (lx, 0), (lx, ly), (0, ly))]
+    lines = [geo.addLine(p[i], p[(i + 1) % 4]) for i in range(4)]
+    s = geo.addPlaneSurface([geo.addCurveLoop(lines)])
+    for k, line in enumerate(lines):
+        geo.mesh.setTransfiniteCurve(line, (nx if k % 2 == 0 else ny) + 1)
+    geo.mesh.setTransfiniteSurface(s)
+    if cell == "quadrilateral":
+        geo.mesh.setRecombine(2, s)
+    geo.synchronize()
+    _tag_boundaries(
+        gmsh,
+        2,
+        lambda c, tag: "inlet" if np.isclose(c[1], 0) else "outlet" if np.isclose(c[1], ly) else "walls",
+    )
+
+
+def _cylinder(gmsh, size: float) -> None:
+    d, h = CYLINDER["diameter"], CYLINDER["height"]
+    gmsh.model.occ.addCylinder(0, 0, 0, 0, 0, h, d / 2)
+    gmsh.model.occ.synchronize()
+    _tag_boundaries(
+        gmsh,
+        3,
+        lambda c, tag: "inlet" if np.isclose(c[2], 0) else "outlet" if np.isclose(c[2], h) else "walls",
+    )
+    gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", size / 2)
+
+
+def _tag_boundaries(gmsh, dim: int, classify) -> None:
+    """Name the facet entities by the centre of their bounding box; one physical group for all cells."""
+    groups: dict[str, list[int]] = {}
+    for _, tag in gmsh.model.getEntities(dim - 1):
+        bb = gmsh.model.getBoundingBox(dim - 1, tag)
+        centre = 0.5 * (np.array(bb[:3]) + np.array(bb[3:]))
+        name = classify(centre, tag)
+        if name:
+            groups.setdefault(name, []).append(tag)
+    for k, name in enumerate(sorted(groups), start=1):
+        gmsh.model.addPhysicalGroup(dim - 1, groups[name], k)
+        gmsh.model.setPhysicalName(dim - 1, k, name)
+    vols = [t for _, t in gmsh.model.getEntities(dim)]
+    gmsh.model.addPhysicalGroup(dim, vols, 100)
+    gmsh.model.setPhysicalName(dim, 100, "fluid")
+
+
+def _check_builtin(name: str, level: str, cell: str | None, size: float) -> str:
+    """Validate a built-in mesh request; return the cell type (default per geometry)."""
+    if name not in GEOMETRIES:
+        raise MeshError(f"unknown built-in mesh {name!r}; choose one of {', '.join(GEOMETRIES)}")
+    cell = cell or {"pseudo2d": "hexahedron", "wang2d": "quadrilateral", "cylinder": "tetrahedron"}[name]
+    allowed = {
+        "pseudo2d": ("hexahedron", "tetrahedron"),
+        "wang2d": ("quadrilateral", "triangle"),
+        "cylinder": ("tetrahedron",),
+    }[name]
+    if cell not in allowed:
+        raise MeshError(f"built-in mesh {name!r} comes in {', '.join(allowed)} cells, not {cell!r}")
+    if name == "pseudo2d" and level not in PSEUDO2D_LEVELS:
+        raise MeshError(f"pseudo2d level {level!r}: choose one of {', '.join(PSEUDO2D_LEVELS)}")
+    if not size > 0:
+        raise MeshError(f"mesh size must be > 0, got {size}")
+    return cell
+
+
+def _build_model(gmsh, name: str, level: str, cell: str, size: float) -> int:
+    """Build the geometry, meshing constraints and physical groups of `name`; return its dimension."""
+    gmsh.clear()
+    gmsh.model.add(name)
+    if name == "pseudo2d":
+        _pseudo2d(gmsh, level, cell, size)
+        return 3
+    if name == "wang2d":
+        _wang2d(gmsh, cell)
+        return 2
+    _cylinder(gmsh, size)
+    return 3
+
+
+def _atomic_write(gmsh, out: Path) -> Path:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=out.suffix, dir=out.parent)
+    os.close(fd)
+    try:
+        gmsh.write(tmp)
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+def build_msh(
+    name: str,
+    out: str | os.PathLike,
+    level: str = "coarse",
+    cell: str | None = None,
+    size: float = 0.005,
+) -> Path:
+    """Mesh built-in geometry `name` with gmsh and write it to `out` (.msh 4.1, written atomically)."""
+    cell = _check_builtin(name, level, cell, size)
+    gmsh = _gmsh()
+    try:
+        dim = _build_model(gmsh, name, level, cell, size)
+        gmsh.model.mesh.generate(dim)
+        gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
+        return _atomic_write(gmsh, Path(out))
+    finally:
+        gmsh.clear()
+
+
+def write_geo(name: str, out: str | os.PathLike, level: str = "coarse", cell: str | None = None, size=0.005) -> Path:
+    """Write the gmsh source (`.geo_unrolled`) of built-in geometry `name`, to open in the gmsh GUI."""
+    cell = _check_builtin(name, level, cell, size)
+    gmsh = _gmsh()
+    try:
+        _build_model(gmsh, name, level, cell, size)
+        return _atomic_write(gmsh, Path(out))
+    finally:
+        gmsh.clear()
+
+
+# --------------------------------------------------------------------------------------------- loading
+
+
+def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = None) -> MeshData:
+    """Read a gmsh `.msh` on rank 0 and distribute it: DOLFINx mesh, cell and facet tags, tag names.
+
+    Args:
+        path: the .msh file; its cells must form a physical group and its boundary facets should carry
+            named physical groups.
+        comm: communicator to distribute the mesh over.
+        gdim: geometric dimension; by default 2 if every node has z = 0, else 3.
+    """
+    from dolfinx.io import gmshio
+
+    path = Path(path)
+    err, names, dim = None, {}, 3
+    gmsh = None
+    if comm.rank == 0:
+        if not path.is_file():
+            err = f"mesh file not found: {path}"
+        else:
+            gmsh = _gmsh()
+            gmsh.clear()
+            try:
+                gmsh.merge(str(path))
+                tdim = gmsh.model.getDimension()
+                for d, tag in gmsh.model.getPhysicalGroups(tdim - 1):
+                    nm = gmsh.model.getPhysicalName(d, tag)
+                    names[nm or f"tag{tag}"] = tag
+                if not gmsh.model.getPhysicalGroups(tdim):
+                    err = f"{path}: the cells carry no physical group (add one, e.g. Physical Volume('fluid'))"
+                _, xyz, _ = gmsh.model.mesh.getNodes()
+                dim = 2 if tdim == 2 and np.allclose(np.asarray(xyz)[2::3], 0) else 3
+            except Exception as e:  # gmsh raises plain Exceptions with its own message
+                err = f"{path}: gmsh cannot read it: {e}"
+    err, names, dim = comm.bcast((err, names, dim), root=0)
+    if err:
+        if gmsh is not None:
+            gmsh.clear()
+        raise MeshError(err)
+    if comm.rank == 0:
+        mesh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=gdim or dim)
+        gmsh.clear()
+    else:
+        import gmsh as gmsh_mod
+
+        mesh, ct, ft = gmshio.model_to_mesh(gmsh_mod.model, comm, 0, gdim=gdim or dim)
+    return MeshData(mesh=mesh, facet_tags=ft, cell_tags=ct, tags=names, source=str(path))
+
+
+def builtin_msh_path(name: str, level: str, cell: str, size: float, cache_dir: Path) -> Path:
+    """Path of the cached .msh of a built-in mesh (built on rank 0 on first use)."""
+    tag = f"{name}-{level}-{cell}" if name == "pseudo2d" and cell == "hexahedron" else f"{name}-{cell}"
+    if cell == "tetrahedron":
+        tag += f"-h{size:g}"
+    if name == "pseudo2d" and cell != "hexahedron":
+        tag = f"{name}-{cell}-h{size:g}"
+    return cache_dir / f"{tag}.msh"
+
+
+def load_case_mesh(case, comm=MPI.COMM_WORLD, cache_dir: Path | None = None) -> MeshData:
+    """The mesh a validated case names (`[mesh] file` or `builtin`), checked against its boundary tags."""
+    m = case.mesh
+    if m.file:
+        md = load_msh(case.resolve_path(m.file), comm)
+    else:
+        cell = m.cell
+        if m.builtin == "wang2d" and cell in ("hexahedron", "tetrahedron"):
+            cell = "quadrilateral" if cell == "hexahedron" else "triangle"
+        cache_dir = cache_dir or (case.output_dir() / "mesh")
+        path = builtin_msh_path(m.builtin, m.level, cell, m.size, cache_dir)
+        err = None
+        if comm.rank == 0 and not path.is_file():
+            try:
+                build_msh(m.builtin, path, level=m.level, cell=cell, size=m.size)
+            except MeshError as e:
+                err = str(e)
+        err = comm.bcast(err, root=0)
+        if err:
+            raise MeshError(f"[mesh] builtin = {m.builtin!r}: {err}")
+        md = load_msh(path, comm)
+    md.require_tags(list(case.boundary), "[gas.boundary.*]")
+    return md
+
+
+def mesh_volume(md: MeshData) -> float:
+    """Total volume (area in 2D) of the mesh, summed over ranks with compensated summation."""
+    import math
+
+    import dolfinx.fem
+    import dolfinx.fem.petsc
+    import ufl
+
+    dg0 = dolfinx.fem.FunctionSpace(md.mesh, ("DG", 0))
+    v = ufl.TestFunction(dg0)
+    vec = dolfinx.fem.petsc.assemble_vector(dolfinx.fem.form(v * ufl.dx))
+    n_owned = md.mesh.topology.index_map(md.mesh.topology.dim).size_local
+    local = vec.array[:n_owned].copy()
+    vec.destroy()
+    return math.fsum(np.concatenate(md.comm.allgather(local)))
+
+
+def facet_area(md: MeshData, name: str) -> float:
+    """Total area (length in 2D) of the facets tagged `name`, summed over ranks."""
+    import dolfinx.fem
+    import ufl
+
+    ds = ufl.Measure("ds", domain=md.mesh, subdomain_data=md.facet_tags)
+    one = dolfinx.fem.Constant(md.mesh, 1.0)
+    local = dolfinx.fem.assemble_scalar(dolfinx.fem.form(one * ds(md.tag_id(name))))
+    return md.comm.allreduce(local, op=MPI.SUM)
+
+
+def global_cell_count(md: MeshData) -> int:
+    """Number of cells of the whole mesh."""
+    imap = md.mesh.topology.index_map(md.mesh.topology.dim)
+    return imap.size_global
