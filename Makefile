@@ -38,11 +38,11 @@ test-serial: setup
 	$(PYTEST) -m "not slow"
 
 test-mpi: setup
-	$(MPIRUN) $(PY) -m pytest -m "mpi and not slow" -q
+	$(MPIRUN) $(PY) -m pytest -m "mpi and not slow" -q --color=no
 
 test-all: setup
 	$(PYTEST)
-	$(MPIRUN) $(PY) -m pytest -m mpi -q
+	$(MPIRUN) $(PY) -m pytest -m mpi -q --color=no
 
 bench: setup
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

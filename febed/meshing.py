@@ -99,12 +99,14 @@ class MeshData:
         imap = mesh.topology.index_map(fdim)
         facets = np.concatenate([self.facets(n) for n in names]) if names else np.empty(0, np.int32)
         facets = np.unique(facets[facets < imap.size_local]).astype(np.int32)
-        geom = entities_to_geometry(mesh._mesh, fdim, facets, False) if facets.size else np.empty((0, 2), np.int32)
-        x = mesh.geometry.x
-        nv = geom.shape[1] if facets.size else {1: 2, 2: 3}.get(fdim, 2)
-        if mesh.topology.cell_type.name in ("hexahedron",) and nv == 4:
-            geom = geom[:, [0, 1, 3, 2]]  # DOLFINx quad facets are tensor-ordered; make them cyclic
-        coords = x[geom] if facets.size else np.empty((0, nv, 3))
+        nv = {"triangle": 2, "quadrilateral": 2, "tetrahedron": 3, "hexahedron": 4}[mesh.topology.cell_type.name]
+        if facets.size:
+            geom = entities_to_geometry(mesh._mesh, fdim, facets, False)
+            if nv == 4:
+                geom = geom[:, [0, 1, 3, 2]]  # DOLFINx quad facets are tensor-ordered; make them cyclic
+            coords = mesh.geometry.x[geom]
+        else:
+            coords = np.empty((0, nv, 3))
         parts = mesh.comm.allgather(np.ascontiguousarray(coords, dtype=np.float64).reshape(-1, nv, 3))
         return np.concatenate(parts, axis=0)
 

@@ -1,0 +1,153 @@
+"""The `febed` command line.
+
+    febed run CASE.toml [--set section.key=value ...] [--overwrite]   run a case (also under mpirun -n N)
+    febed check CASE.toml [--set ...]                                 validate a case and its mesh, run nothing
+    febed params [SECTION]                                            every parameter: default, unit, help
+    febed mesh NAME [--level L] [--cell C] [--size H] -o FILE.msh     build a built-in mesh (or --geo source)
+
+Errors in the user's input (case, mesh, output folder) are printed as one clear message and exit with
+status 2; a traceback means a bug in febed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import tempfile
+from pathlib import Path
+
+from mpi4py import MPI
+
+from febed.case import CaseError, load_case
+from febed.meshing import GEOMETRIES, PSEUDO2D_LEVELS, MeshError
+from febed.schema import BOUNDARY, SCHEMA, describe
+
+# run.mode -> module with `run(case, outdir, log)`; a mode whose module is absent is reported clearly.
+RUNNERS = {"dem": "febed.dem.driver", "gas": "febed.gas.driver", "cfd-dem": "febed.solver"}
+
+
+class UserError(Exception):
+    """An input problem reported as a message, not a traceback."""
+
+
+def _say(msg: str, err: bool = False) -> None:
+    if MPI.COMM_WORLD.rank == 0:
+        print(msg, file=sys.stderr if err else sys.stdout, flush=True)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="febed", description="CFD-DEM for gas-solid fluidized beds.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def with_case(sp):
+        sp.add_argument("case", help="TOML case file")
+        sp.add_argument(
+            "--set",
+            dest="overrides",
+            action="append",
+            default=[],
+            metavar="SECTION.KEY=VALUE",
+            help="override a case parameter (repeatable), e.g. --set gas.density=1.165",
+        )
+
+    r = sub.add_parser("run", help="run a case")
+    with_case(r)
+    r.add_argument("--overwrite", action="store_true", help="replace an existing output folder written by febed")
+    r.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    c = sub.add_parser("check", help="validate a case (and its mesh tags) without running it")
+    with_case(c)
+    pa = sub.add_parser("params", help="list every case parameter with default, unit and help")
+    pa.add_argument("section", nargs="?", help="only this section (e.g. gas, contact, gas.boundary)")
+    m = sub.add_parser("mesh", help="build a built-in mesh as a gmsh .msh file")
+    m.add_argument("name", choices=GEOMETRIES)
+    m.add_argument("--level", default="coarse", choices=list(PSEUDO2D_LEVELS), help="pseudo2d: seed 001 Table 2")
+    m.add_argument("--cell", default=None, help="hexahedron|tetrahedron (pseudo2d), quadrilateral|triangle (wang2d)")
+    m.add_argument("--size", type=float, default=0.005, help="cell size of unstructured meshes [m]")
+    m.add_argument("-o", "--output", required=True, help="output file (.msh; with --geo, .geo_unrolled)")
+    m.add_argument("--geo", action="store_true", help="write the gmsh geometry source instead of a mesh")
+    return p
+
+
+def cmd_params(args) -> int:
+    """Print every declared parameter (generated from febed/schema.py)."""
+    sections = dict(SCHEMA)
+    sections["gas.boundary.<tag>"] = BOUNDARY
+    if args.section:
+        want = "gas.boundary.<tag>" if args.section.startswith("gas.boundary") else args.section
+        if want not in sections:
+            raise UserError(f"no section {args.section!r}; sections: {', '.join(sections)}")
+        sections = {want: sections[want]}
+    for sec, params in sections.items():
+        print(f"[{sec}]")
+        for key, par in params.items():
+            print("  " + describe(sec, key, par))
+        print()
+    return 0
+
+
+def cmd_check(args) -> int:
+    """Validate the case and load its mesh (tags checked) without writing anything."""
+    case = load_case(args.case, args.overrides)
+    from febed.meshing import global_cell_count, load_case_mesh
+
+    with tempfile.TemporaryDirectory() as tmp:
+        md = load_case_mesh(case, cache_dir=Path(tmp))
+    _say(
+        f"{args.case}: OK — mode {case.run.mode}, mesh {md.source and Path(md.source).name} "
+        f"({global_cell_count(md)} cells, tags {', '.join(sorted(md.tags))}), output to {case.output_dir()}"
+    )
+    return 0
+
+
+def cmd_mesh(args) -> int:
+    """Build a built-in mesh (rank 0 only)."""
+    from febed.meshing import build_msh, write_geo
+
+    if MPI.COMM_WORLD.rank == 0:
+        fn = write_geo if args.geo else build_msh
+        out = fn(args.name, args.output, level=args.level, cell=args.cell, size=args.size)
+        print(f"wrote {out}")
+    return 0
+
+
+def cmd_run(args) -> int:
+    """Validate, prepare the output folder, and hand the case to the runner of its mode."""
+    from febed.io.rundir import get_logger, prepare_output
+
+    case = load_case(args.case, args.overrides)
+    module = RUNNERS[case.run.mode]
+    try:
+        runner = importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name and module.startswith(e.name):
+            raise UserError(
+                f"[run] mode = {case.run.mode!r} is not available in this version of febed "
+                f"({module} is missing); see the features table in README.md"
+            ) from None
+        raise
+    outdir = prepare_output(case, overwrite=args.overwrite)
+    log = get_logger(outdir, verbose=args.verbose)
+    log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
+    log.info(f"output folder: {outdir}")
+    runner.run(case, outdir, log)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `febed` console script; returns the exit status."""
+    from febed.io.rundir import OutputError
+
+    args = _parser().parse_args(argv)
+    commands = {"run": cmd_run, "check": cmd_check, "params": cmd_params, "mesh": cmd_mesh}
+    try:
+        return commands[args.command](args)
+    except CaseError as e:
+        _say(f"febed: error in {e}", err=True)
+    except (MeshError, OutputError, UserError) as e:
+        _say(f"febed: error: {e}", err=True)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

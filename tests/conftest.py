@@ -1,0 +1,53 @@
+"""Shared pytest fixtures: MPI-safe temporary folders and collective teardown (STYLE.md item 2)."""
+
+import gc
+import shutil
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from mpi4py import MPI
+
+
+@pytest.fixture
+def mpi_tmp_path():
+    """A temporary folder shared by all ranks (made on rank 0, broadcast), removed after the test."""
+    comm = MPI.COMM_WORLD
+    path = tempfile.mkdtemp(prefix="febed-test-") if comm.rank == 0 else None
+    path = Path(comm.bcast(path, root=0))
+    yield path
+    comm.barrier()
+    if comm.rank == 0:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+@pytest.fixture(autouse=True)
+def _collective_teardown():
+    """PETSc destructors are collective: collect garbage on every rank, then wait for all of them."""
+    yield
+    gc.collect()
+    MPI.COMM_WORLD.barrier()
+
+
+@pytest.fixture(scope="session")
+def seed_meshes(tmp_path_factory):
+    """Built-in meshes (.msh) built once per session on rank 0: name -> path."""
+    from febed.meshing import build_msh
+
+    comm = MPI.COMM_WORLD
+    specs = {
+        "pseudo2d-coarse": dict(name="pseudo2d", level="coarse"),
+        "pseudo2d-intermediate": dict(name="pseudo2d", level="intermediate"),
+        "pseudo2d-tet": dict(name="pseudo2d", cell="tetrahedron", size=0.01),
+        "wang2d": dict(name="wang2d"),
+        "wang2d-tri": dict(name="wang2d", cell="triangle"),
+        "cylinder": dict(name="cylinder", size=0.008),
+    }
+    root = Path(comm.bcast(str(tmp_path_factory.mktemp("meshes")) if comm.rank == 0 else None, root=0))
+    paths = {k: root / f"{k}.msh" for k in specs}
+    if comm.rank == 0:
+        for k, spec in specs.items():
+            build_msh(out=paths[k], **spec)
+    comm.barrier()
+    return paths

@@ -1,0 +1,104 @@
+"""Seed meshes: Table 2 cell counts, exact volumes and patch areas, named tags, 1 vs N ranks."""
+
+import numpy as np
+import pytest
+
+from mpi4py import MPI
+
+from febed.meshing import (
+    PSEUDO2D_LEVELS,
+    MeshError,
+    build_msh,
+    facet_area,
+    global_cell_count,
+    load_msh,
+    mesh_volume,
+)
+
+pytestmark = pytest.mark.mpi
+
+VOLUME = 0.08 * 0.015 * 0.25  # seed 001 bed, m^3
+
+
+@pytest.mark.parametrize("level", ["coarse", "intermediate"])
+def test_pseudo2d_table2(seed_meshes, level):
+    md = load_msh(seed_meshes[f"pseudo2d-{level}"])
+    (nx, ny, nz), (px, py) = PSEUDO2D_LEVELS[level]
+    assert global_cell_count(md) == nx * ny * nz  # independent of the number of ranks
+    assert md.mesh.topology.cell_type.name == "hexahedron"
+    assert abs(mesh_volume(md) / VOLUME - 1) < 1e-12
+    assert set(md.tags) == {"inlet", "bottom_wall", "walls", "outlet"}
+    patch = px * (0.08 / nx) * py * (0.015 / ny)
+    assert abs(facet_area(md, "bottom_wall") / patch - 1) < 1e-12
+    assert abs((facet_area(md, "inlet") + patch) / (0.08 * 0.015) - 1) < 1e-12
+    assert abs(facet_area(md, "outlet") / (0.08 * 0.015) - 1) < 1e-12
+    assert abs(facet_area(md, "walls") / (2 * (0.08 + 0.015) * 0.25) - 1) < 1e-12
+
+
+@pytest.mark.slow
+def test_pseudo2d_fine_table2(tmp_path):
+    if MPI.COMM_WORLD.size > 1:
+        pytest.skip("serial check of the 184,800-cell mesh")
+    md = load_msh(build_msh("pseudo2d", tmp_path / "fine.msh", level="fine"), comm=MPI.COMM_SELF)
+    assert global_cell_count(md) == 70 * 12 * 220
+    assert abs(facet_area(md, "bottom_wall") / (10 * 0.08 / 70 * 8 * 0.015 / 12) - 1) < 1e-12
+
+
+def test_patch_is_centred(seed_meshes):
+    md = load_msh(seed_meshes["pseudo2d-intermediate"])
+    quads = md.boundary_facet_coords(["bottom_wall"])
+    lo, hi = quads.reshape(-1, 3).min(axis=0), quads.reshape(-1, 3).max(axis=0)
+    assert np.allclose([lo[0] + hi[0], lo[1] + hi[1]], [0.08, 0.015], atol=1e-14)
+    assert np.allclose(lo[2], 0) and np.allclose(hi[2], 0)
+
+
+def test_tetrahedral_variant(seed_meshes):
+    md = load_msh(seed_meshes["pseudo2d-tet"])
+    assert md.mesh.topology.cell_type.name == "tetrahedron"
+    assert abs(mesh_volume(md) / VOLUME - 1) < 1e-12
+    assert set(md.tags) == {"inlet", "bottom_wall", "walls", "outlet"}
+
+
+@pytest.mark.parametrize("variant,cell,ncells", [("wang2d", "quadrilateral", 1800), ("wang2d-tri", "triangle", 3600)])
+def test_wang2d(seed_meshes, variant, cell, ncells):
+    md = load_msh(seed_meshes[variant])
+    assert md.gdim == 2
+    assert md.mesh.topology.cell_type.name == cell
+    assert global_cell_count(md) == ncells
+    assert abs(mesh_volume(md) / (0.09 * 0.5) - 1) < 1e-12
+    assert abs(facet_area(md, "inlet") / 0.09 - 1) < 1e-12
+    assert abs(facet_area(md, "walls") / 1.0 - 1) < 1e-12
+
+
+def test_cylinder(seed_meshes):
+    md = load_msh(seed_meshes["cylinder"])
+    assert set(md.tags) == {"inlet", "walls", "outlet"}
+    exact = np.pi * 0.025**2 * 0.15
+    assert abs(mesh_volume(md) / exact - 1) < 0.02  # polyhedral approximation of a cylinder
+
+
+def test_boundary_facet_coords_whole_mesh_once(seed_meshes):
+    """Every tagged facet appears exactly once on every rank; quads are cyclic (their areas add up)."""
+    md = load_msh(seed_meshes["pseudo2d-coarse"])
+    quads = md.boundary_facet_coords(["walls"])
+    assert quads.shape == (2 * (17 + 3) * 55, 4, 3)
+    a, b, c, d = (quads[:, k] for k in range(4))
+    area = 0.5 * np.linalg.norm(np.cross(c - a, d - b), axis=1)
+    assert abs(area.sum() / (2 * (0.08 + 0.015) * 0.25) - 1) < 1e-12
+    centres = np.round(quads.mean(axis=1), 12)
+    assert len(np.unique(centres, axis=0)) == len(quads)
+
+
+def test_missing_tag_lists_available(seed_meshes):
+    md = load_msh(seed_meshes["wang2d"])
+    with pytest.raises(MeshError, match="mesh has: inlet, outlet, walls"):
+        md.require_tags(["inlet", "distributor"])
+
+
+def test_bad_requests(tmp_path):
+    with pytest.raises(MeshError, match="unknown built-in mesh"):
+        build_msh("sphere", tmp_path / "x.msh")
+    with pytest.raises(MeshError, match="comes in"):
+        build_msh("wang2d", tmp_path / "x.msh", cell="hexahedron")
+    with pytest.raises(MeshError, match="mesh file not found"):
+        load_msh(tmp_path / "missing.msh")
