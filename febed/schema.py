@@ -47,6 +47,7 @@ class Param:
     lo_open: bool = False
     choices: tuple[str, ...] | Registry | None = None
     length: int | None = None
+    item: type = float
 
     def allowed(self) -> str:
         """Human-readable description of the allowed values."""
@@ -55,7 +56,8 @@ class Param:
             return "one of " + ", ".join(repr(c) for c in names)
         what = _TYPE_NAMES[self.type]
         if self.type is list:
-            what = f"a list of {self.length} numbers" if self.length else "a list of numbers"
+            noun = "numbers" if self.item is float else "strings"
+            what = f"a list of {self.length} {noun}" if self.length else f"a list of {noun}"
         rng = []
         if self.lo is not None:
             rng.append(f"{'>' if self.lo_open else '>='} {self.lo:g}")
@@ -98,10 +100,12 @@ class Param:
                 return bad
             return value, None
         if t is list:
-            if not isinstance(value, list) or not value:
+            if not isinstance(value, list):
                 return bad
             if self.length is not None and len(value) != self.length:
                 return bad
+            if self.item is str:
+                return (value, None) if all(isinstance(x, str) for x in value) else bad
             if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
                 return bad
             value = [float(x) for x in value]
@@ -261,6 +265,14 @@ BOUNDARY: dict[str, Param] = {
     ),
     "velocity": Param(
         None, "m/s", "inlet: superficial velocity U_f (mass inflow rho U_f A whatever eps)", float, lo=0.0
+    ),
+    "cross_section_tags": Param(
+        [],
+        "-",
+        "inlet: U_f is superficial over the inlet plus these tags (seed 001: ['bottom_wall']), so the open part "
+        "carries U_f A_total / A_open",
+        list,
+        item=str,
     ),
     "ramp_time": Param(0.0, "s", "inlet: ramp the velocity linearly from 0 over this time", float, lo=0.0),
     "slip": Param(False, "-", "wall: slip (true) or no-slip (false) for the gas", bool),
