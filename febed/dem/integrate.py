@@ -1,0 +1,171 @@
+"""Time integrators of the particles, registered in `febed.schema.INTEGRATORS`: `rk2` (default) and `verlet`.
+
+Each integrator advances the owned particles by up to `n_steps` steps of `dt` in one compiled loop and
+returns early (after a whole step) when the pair list must be rebuilt: when the largest displacement since
+the last build, plus the displacement the next step can make, exceeds half the skin. The caller rebuilds
+and calls again. External forces `fext` (N, per particle: drag + pressure gradient from the coupling)
+are held fixed over the steps; gravity is added in the force loop.
+
+2D mode: z components of velocity and x, y components of angular velocity are kept at zero.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from febed.dem.forces import compute_forces
+from febed.schema import INTEGRATORS
+
+
+@njit(cache=True)
+def _kick(n, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2):
+    for i in range(n):
+        s = h / mass[i]
+        for a in range(3):
+            vel[i, a] += s * (force[i, a] + fext[i, a])
+        if rotation:
+            s = h / inertia[i]
+            for a in range(3):
+                omega[i, a] += s * torque[i, a]
+        if dim2:
+            vel[i, 2] = 0.0
+            omega[i, 0] = 0.0
+            omega[i, 1] = 0.0
+
+
+@njit(cache=True)
+def _reach(n, dt, pos, pos_ref, vel, force, fext, mass, half_dt_accel):
+    """Largest |x - x_ref| + dt |v + dt/2 a| (m): displacement since the build plus the next step's."""
+    worst = 0.0
+    for i in range(n):
+        d2 = 0.0
+        v2 = 0.0
+        s = half_dt_accel / mass[i]
+        for a in range(3):
+            d = pos[i, a] - pos_ref[i, a]
+            d2 += d * d
+            v = vel[i, a] + s * (force[i, a] + fext[i, a])
+            v2 += v * v
+        worst = max(worst, math.sqrt(d2) + dt * math.sqrt(v2))
+    return worst
+
+
+@njit(cache=True)
+def verlet_steps(
+    n_steps, dt, pos, vel, omega, force, torque, diameter, mass, inertia, n_owned, n, fext, pos_ref, half_skin,
+    start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2,
+):  # fmt: skip
+    """Velocity Verlet (kick-drift-force-kick) for up to n_steps of dt (s); returns (steps, max overlap/d, rebuild?)."""
+    worst = 0.0
+    for s in range(n_steps):
+        _kick(n_owned, 0.5 * dt, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)
+        for i in range(n_owned):
+            for a in range(3):
+                pos[i, a] += dt * vel[i, a]
+        w = compute_forces(
+            pos, vel, omega, diameter, mass, inertia, n_owned, n, start, nbr, hist, hist, wstart, wid, whist, whist,
+            plane_p, plane_n, facets, nv, pp, pw, dt, dt, rotation, gvec, force, torque,
+        )  # fmt: skip
+        worst = max(worst, w)
+        _kick(n_owned, 0.5 * dt, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)
+        if _reach(n_owned, dt, pos, pos_ref, vel, force, fext, mass, 0.5 * dt) > half_skin:
+            return s + 1, worst, True
+    return n_steps, worst, False
+
+
+@njit(cache=True)
+def rk2_steps(
+    n_steps, dt, pos, vel, omega, force, torque, diameter, mass, inertia, n_owned, n, fext, pos_ref, half_skin,
+    start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2,
+    x0, v0, w0, htmp, whtmp,
+):  # fmt: skip
+    """RK2 of seed 001 eqs 40-41 for up to n_steps of dt (s); returns (steps, max overlap/d, rebuild?)."""
+    worst = 0.0
+    h = 0.5 * dt
+    for s in range(n_steps):
+        # forces at t^n; the tangential elongation is not advanced (dt_eval = 0), its update goes to scratch
+        compute_forces(
+            pos, vel, omega, diameter, mass, inertia, n_owned, n, start, nbr, hist, htmp, wstart, wid, whist, whtmp,
+            plane_p, plane_n, facets, nv, pp, pw, 0.0, h, rotation, gvec, force, torque,
+        )  # fmt: skip
+        for i in range(n_owned):
+            for a in range(3):
+                x0[i, a] = pos[i, a]
+                v0[i, a] = vel[i, a]
+                w0[i, a] = omega[i, a]
+                pos[i, a] += h * vel[i, a]  # seed 001 eq 40
+        _kick(n_owned, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)  # seed 001 eq 40
+        w = compute_forces(
+            pos, vel, omega, diameter, mass, inertia, n_owned, n, start, nbr, hist, hist, wstart, wid, whist, whist,
+            plane_p, plane_n, facets, nv, pp, pw, h, dt, rotation, gvec, force, torque,
+        )  # fmt: skip
+        worst = max(worst, w)
+        for i in range(n_owned):
+            for a in range(3):
+                pos[i, a] = x0[i, a] + dt * vel[i, a]  # seed 001 eq 41
+                vel[i, a] = v0[i, a]
+                omega[i, a] = w0[i, a]
+        _kick(n_owned, dt, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)  # seed 001 eq 41
+        if _reach(n_owned, dt, pos, pos_ref, vel, force, fext, mass, 0.0) > half_skin:
+            return s + 1, worst, True
+    return n_steps, worst, False
+
+
+class Integrator:
+    """A registered integrator: its compiled multi-step loop and how many force evaluations a step costs."""
+
+    def __init__(self, name: str, steps, force_evals: int, needs_initial_forces: bool):
+        """Wrap the compiled loop `steps` under `name`."""
+        self.name = name
+        self.steps = steps
+        self.force_evals = force_evals
+        self.needs_initial_forces = needs_initial_forces
+
+    def __repr__(self) -> str:
+        return f"Integrator({self.name!r})"
+
+
+INTEGRATORS.register("verlet")(Integrator("verlet", verlet_steps, 1, True))
+INTEGRATORS.register("rk2")(Integrator("rk2", rk2_steps, 2, False))
+
+
+def get_integrator(name: str) -> Integrator:
+    """The registered integrator called `name` (ValueError listing the valid names otherwise)."""
+    try:
+        return INTEGRATORS.get(name)
+    except KeyError as err:
+        raise ValueError(str(err)) from None
+
+
+def _tc(p, m_eff: float) -> float:
+    w0 = math.sqrt(p.kn / m_eff)  # seed 001 eq 17
+    return math.pi / (w0 * math.sqrt(1.0 - p.ce * p.ce))  # seed 001 eqs 18-19
+
+
+def critical_time(law, pp, pw, mass: np.ndarray, diameter: np.ndarray, rotation: bool, walls: bool = True) -> float:
+    """Shortest contact time T_C (s, seed 001 eq 19) over the pair types present: lightest particle pairs.
+
+    Particle-particle pairs of the two lightest particles, particle-wall contact of the lightest one, and,
+    for a law with a tangential spring, the tangential half period with the matching effective mass.
+    """
+    if mass.size == 0:
+        raise ValueError("critical_time needs at least one particle")
+    order = np.argsort(mass)
+    ma = float(mass[order[0]])
+    mb = float(mass[order[1]]) if mass.size > 1 else ma
+    ra = 0.5 * float(diameter[order[0]])
+    rb = 0.5 * float(diameter[order[1]]) if mass.size > 1 else ra
+    rot = 1.0 if rotation else 0.0
+    ia = 0.4 * ma * ra * ra
+    ib = 0.4 * mb * rb * rb
+    m_pp = ma * mb / (ma + mb)
+    t = _tc(pp, m_pp)
+    mt_pp = 1.0 / (1.0 / ma + 1.0 / mb + rot * (ra * ra / ia + rb * rb / ib))
+    t = min(t, law.tangential_time(pp, mt_pp))
+    if walls:
+        t = min(t, _tc(pw, ma))
+        t = min(t, law.tangential_time(pw, 1.0 / (1.0 / ma + rot * ra * ra / ia)))
+    return t

@@ -1,0 +1,330 @@
+"""The DEM: particles + walls + contact law + integrator, advanced by `DEM.advance(n_steps, dt, f_ext)`.
+
+This is the one entry point the pure-DEM driver and the coupled loop call. Row order of the particle
+arrays may change inside `advance` (particles are sorted by linked cell for memory locality when the pair
+list is rebuilt): identify particles by `particles.gid`, and pass `f_ext` in the current row order.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from febed.dem.contact import ContactLaw, get_law, stiffness_from_material
+from febed.dem.forces import compute_forces
+from febed.dem.integrate import critical_time, get_integrator
+from febed.dem.neighbours import (
+    PairList,
+    cell_index,
+    grid_of,
+    restore_wall_history,
+    wall_keys,
+)
+from febed.dem.particles import Particles
+from febed.dem.walls import Walls, build_wall_pairs
+
+
+@dataclass
+class DEMParams:
+    """Plain DEM parameters (SI units); `DEM.from_case` fills them from a case.
+
+    Attributes:
+        dim: 3, or 2 for spheres moving in the x-y plane (gravity along -y).
+        contact_model: registered contact law ("linear", "linear-history").
+        kn: normal stiffness k_n (N/m) of particle-particle contacts; kn_wall for walls (None: = kn).
+        tangential_ratio: k_t / k_n (linear-history).
+        restitution_pp, restitution_pw: normal restitution e_p, e_w.
+        friction_pp, friction_pw: Coulomb friction mu_p, mu_w.
+        integrator: registered integrator ("rk2", "verlet").
+        dt_factor: default step = T_C / dt_factor (seed 001 eq 42).
+        skin: pair-list skin as a fraction of the largest diameter.
+        gravity: magnitude (m/s^2), along -z (3D) or -y (2D).
+        rotation: integrate angular velocities.
+        sort: reorder particles by linked cell at every pair-list rebuild.
+    """
+
+    dim: int = 3
+    contact_model: str = "linear-history"
+    kn: float = 1000.0
+    kn_wall: float | None = None
+    tangential_ratio: float = 2.0 / 7.0
+    restitution_pp: float = 0.9
+    restitution_pw: float = 0.9
+    friction_pp: float = 0.3
+    friction_pw: float = 0.3
+    integrator: str = "rk2"
+    dt_factor: float = 6.0
+    skin: float = 0.1
+    gravity: float = 9.81
+    rotation: bool = True
+    sort: bool = True
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first parameter out of range."""
+        if self.dim not in (2, 3):
+            raise ValueError(f"dim must be 2 or 3, got {self.dim}")
+        for name in ("kn", "dt_factor", "skin"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("restitution_pp", "restitution_pw"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        for name in ("friction_pp", "friction_pw", "tangential_ratio", "gravity"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+
+class DEM:
+    """Soft-sphere DEM of one process's particles (seed 001 sec 2.2, 2.4.2)."""
+
+    def __init__(self, params: DEMParams | None = None, particles: Particles | None = None, walls: Walls | None = None):
+        """Set up the law, integrator, walls and pair list; particles can be added later."""
+        self.params = p = params or DEMParams()
+        p.validate()
+        self.law: ContactLaw = get_law(p.contact_model)
+        self.integrator = get_integrator(p.integrator)
+        kw = p.kn if p.kn_wall is None else p.kn_wall
+        self.pp = self.law.params(p.kn, p.restitution_pp, p.friction_pp, p.tangential_ratio * p.kn)
+        self.pw = self.law.params(kw, p.restitution_pw, p.friction_pw, p.tangential_ratio * kw)
+        self.particles = particles if particles is not None else Particles()
+        self.walls = walls if walls is not None else Walls()
+        self.gvec = np.zeros(3)
+        self.gvec[1 if p.dim == 2 else 2] = -p.gravity
+        self.pairs = PairList(skin=1e-12)
+        self.wstart = np.zeros(1, dtype=np.int64)
+        self.wid = np.zeros(64, dtype=np.int64)
+        self.whist = np.zeros((64, 3))
+        self.time = 0.0
+        self.steps = 0
+        self.max_overlap = 0.0  # largest overlap / diameter seen since the last reset
+        self._dirty = True
+        self._forces_valid = False
+        self._fext = np.zeros((0, 3))
+        self._dt = None
+
+    # ------------------------------------------------------------------ construction from a case
+    @classmethod
+    def from_case(cls, case, walls: Walls | None = None, dim: int = 3, particles: Particles | None = None) -> DEM:
+        """A DEM with the parameters of `case` ([contact], [particles], [run]) and the given walls."""
+        c = case.contact
+        kn = c.stiffness
+        kt_ratio = c.tangential_ratio
+        if c.from_material:
+            d = case.particles.diameter
+            kn, kt = stiffness_from_material(c.young_modulus, c.poisson, 0.5 * d, _ref_overlap(case) * d)
+            kt_ratio = kt / kn
+        params = DEMParams(
+            dim=dim,
+            contact_model=c.model,
+            kn=kn,
+            tangential_ratio=kt_ratio,
+            restitution_pp=c.restitution_pp,
+            restitution_pw=c.restitution_pw,
+            friction_pp=c.friction_pp,
+            friction_pw=c.friction_pw,
+            integrator=c.integrator,
+            dt_factor=c.dt_factor,
+            skin=c.skin,
+            gravity=case.run.gravity,
+            rotation=case.particles.rotation,
+        )
+        return cls(params, particles=particles, walls=walls)
+
+    # ------------------------------------------------------------------ particles
+    def add_particles(self, pos, diameter, density, vel=None, omega=None, n_orig=1) -> np.ndarray:
+        """Insert spheres (m, kg/m^3, m/s) and return their gids; the pair list is rebuilt on the next step."""
+        gids = self.particles.add(pos, diameter, density, vel=vel, omega=omega, n_orig=n_orig)
+        self.touch()
+        self._dt = None
+        return gids
+
+    def remove_particles(self, which) -> None:
+        """Remove particles by boolean mask or row indices; their contact history is dropped."""
+        self.particles.remove(which)
+        self.touch()
+        self._dt = None
+
+    def touch(self) -> None:
+        """Declare that positions/velocities were changed from outside: rebuild and recompute forces."""
+        self._dirty = True
+        self._forces_valid = False
+
+    # ------------------------------------------------------------------ time step
+    def critical_time(self) -> float:
+        """Contact time T_C (s) of the stiffest, lightest pair type present (seed 001 eq 19)."""
+        P = self.particles
+        return critical_time(self.law, self.pp, self.pw, P.mass[: P.n_owned], P.diameter[: P.n_owned],
+                             self.params.rotation, self.walls.count > 0)  # fmt: skip
+
+    @property
+    def dt(self) -> float:
+        """Default DEM step T_C / dt_factor (s, seed 001 eq 42)."""
+        if self._dt is None:
+            self._dt = self.critical_time() / self.params.dt_factor
+        return self._dt
+
+    # ------------------------------------------------------------------ neighbour lists
+    def _skin(self) -> float:
+        P = self.particles
+        return self.params.skin * float(P.diameter.max()) if P.n else 1e-12
+
+    def rebuild(self) -> None:
+        """Sort particles by linked cell (if enabled), rebuild the pair and wall lists, keep contact history."""
+        P = self.particles
+        n = P.n
+        saved = self.pairs.saved_history(P.gid[: self.pairs.n]) if self.pairs.n == n else None
+        wsaved = None
+        if self.wstart.size == n + 1 and n:
+            keys, vals = wall_keys(self.wstart, self.wid, P.gid, n, self.whist)
+            order = np.argsort(keys)
+            wsaved = (keys[order], vals[order])
+        skin = self._skin()
+        if self.params.sort and P.n_ghost == 0 and P.n_owned > 1:
+            lo, size, dims = grid_of(P.pos, n, 2.0 * skin / self.params.skin)
+            perm = np.argsort(cell_index(P.pos, n, lo, size, dims), kind="stable")
+            P.reorder(perm)
+            if self._fext.shape[0] == n:
+                self._fext[:] = self._fext[perm]
+        self.pairs.skin = skin
+        self.pairs.build(P.pos, 0.5 * P.diameter, P.gid, saved)
+        self._build_walls(skin)
+        if wsaved is not None:
+            restore_wall_history(self.wstart, self.wid, P.gid, n, wsaved[0], wsaved[1], self.whist)
+        else:
+            self.whist[:] = 0.0
+        self.pos_ref = P.pos.copy()
+        self._dirty = False
+
+    def _build_walls(self, skin: float) -> None:
+        P = self.particles
+        W = self.walls
+        n = P.n
+        rmax = 0.5 * float(P.diameter.max()) if n else 0.0
+        W.prepare(rmax + skin)
+        self.wstart = np.zeros(n + 1, dtype=np.int64)
+        args = (P.pos, 0.5 * P.diameter, n, skin, W.plane_p, W.plane_n, W.facets, W.nv, W.glo, W.gsize, W.gdims,
+                W.gstart, W.gitems, self.wstart)  # fmt: skip
+        need = build_wall_pairs(*args, self.wid)
+        if need > self.wid.size:
+            self.wid = np.zeros(int(need * 1.25) + 16, dtype=np.int64)
+            need = build_wall_pairs(*args, self.wid)
+        if self.whist.shape[0] < self.wid.size:
+            self.whist = np.zeros((self.wid.size, 3))
+
+    # ------------------------------------------------------------------ stepping
+
+    def compute_forces(self, dt_eval: float = 0.0, dt_store: float = 0.0) -> float:
+        """Evaluate force and torque of every particle now (history not advanced); returns max overlap / d."""
+        if self._dirty:
+            self.rebuild()
+        P = self.particles
+        W = self.walls
+        pl = self.pairs
+        w = compute_forces(
+            P.pos, P.vel, P.omega, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, pl.hist,
+            self.wstart, self.wid, self.whist, self.whist, W.plane_p, W.plane_n, W.facets, W.nv, self.pp, self.pw,
+            dt_eval, dt_store, self.params.rotation, self.gvec, P.force, P.torque,
+        )  # fmt: skip
+        self._forces_valid = True
+        return w
+
+    def advance(self, n_steps: int, dt: float | None = None, f_ext: np.ndarray | None = None) -> None:
+        """Advance n_steps steps of dt (s; default T_C/dt_factor) with external forces f_ext (N, (n_owned, 3))."""
+        if n_steps < 0:
+            raise ValueError(f"n_steps must be >= 0, got {n_steps}")
+        P = self.particles
+        dt = self.dt if dt is None else float(dt)
+        if not dt > 0:
+            raise ValueError(f"dt must be > 0, got {dt}")
+        if P.n_owned == 0:
+            self.time += n_steps * dt
+            self.steps += n_steps
+            return
+        if self._fext.shape[0] != P.n:
+            self._fext = np.zeros((P.n, 3))
+        if f_ext is None:
+            self._fext[:] = 0.0
+        else:
+            f_ext = np.asarray(f_ext, dtype=float)
+            if f_ext.shape != (P.n_owned, 3):
+                raise ValueError(f"f_ext must have shape ({P.n_owned}, 3), got {f_ext.shape}")
+            self._fext[: P.n_owned] = f_ext
+        if self._dirty:
+            self.rebuild()
+        if self.integrator.needs_initial_forces and not self._forces_valid:
+            self.compute_forces()
+        done = 0
+        while done < n_steps:
+            k, worst, rebuild = self._run(n_steps - done, dt)
+            done += k
+            self.max_overlap = max(self.max_overlap, worst)
+            if rebuild:
+                self.rebuild()
+        self._forces_valid = True
+        self.time += n_steps * dt
+        self.steps += n_steps
+
+    def _run(self, n_steps: int, dt: float):
+        P = self.particles
+        W = self.walls
+        pl = self.pairs
+        p = self.params
+        args = (
+            n_steps, dt, P.pos, P.vel, P.omega, P.force, P.torque, P.diameter, P.mass, P.inertia, P.n_owned, P.n,
+            self._fext, self.pos_ref, 0.5 * pl.skin, pl.start, pl.nbr, pl.hist, self.wstart, self.wid, self.whist,
+            W.plane_p, W.plane_n, W.facets, W.nv, self.pp, self.pw, p.rotation, self.gvec, p.dim == 2,
+        )  # fmt: skip
+        if self.integrator.name == "rk2":
+            s = self._scratch(P.n_owned, pl.hist.shape[0], self.whist.shape[0])
+            return self.integrator.steps(*args, *s)
+        return self.integrator.steps(*args)
+
+    def _scratch(self, n: int, npairs: int, nwall: int):
+        s = getattr(self, "_rk2_scratch", None)
+        if s is None or s[0].shape[0] < n or s[3].shape[0] < npairs or s[4].shape[0] < nwall:
+            s = (np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((npairs, 3)), np.zeros((nwall, 3)))
+            self._rk2_scratch = s
+        return s
+
+    # ------------------------------------------------------------------ diagnostics
+    def kinetic_energy(self) -> float:
+        """Kinetic energy (J) of the owned particles, translation + rotation."""
+        return self.particles.kinetic_energy()
+
+    def mean_kinetic_energy(self) -> float:
+        """Mean kinetic energy per particle (J)."""
+        n = self.particles.n_owned
+        return self.kinetic_energy() / n if n else 0.0
+
+    def elastic_energy(self) -> float:
+        """Energy (J) stored in the normal springs of the particle-particle and particle-wall contacts."""
+        P = self.particles
+        n = P.n_owned
+        pl = self.pairs
+        if self._dirty:
+            self.rebuild()
+        i = np.repeat(np.arange(pl.n), np.diff(pl.start))
+        j = pl.nbr[: pl.size]
+        r = 0.5 * P.diameter
+        delta = r[i] + r[j] - np.linalg.norm(P.pos[j] - P.pos[i], axis=1)
+        e = 0.5 * self.pp.kn * float(np.sum(np.maximum(delta, 0.0) ** 2))
+        if self.walls.count:
+            dw = self.walls.distance(P.pos[:n])
+            e += 0.5 * self.pw.kn * float(np.sum(np.maximum(r[:n] - dw, 0.0) ** 2))
+        return e
+
+    def potential_energy(self) -> float:
+        """Gravitational potential energy (J) relative to the origin."""
+        P = self.particles
+        n = P.n_owned
+        return -float(np.dot(P.mass[:n], P.pos[:n] @ self.gvec))
+
+
+def _ref_overlap(case) -> float:
+    """Reference overlap (fraction of d) at which material stiffnesses are linearised (default 0.5 %)."""
+    return float(getattr(case.contact, "reference_overlap", 0.005)) if hasattr(case, "contact") else 0.005
+
+
+__all__ = ["DEM", "DEMParams", "math"]
