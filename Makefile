@@ -29,8 +29,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --no-build-isolation -e '.[dev]'
 	@touch $(STAMP)
 
+# The default demo; later issues replace it with the coupled seed-000 bed.
+DEMO := demos/meshes/demo_meshes.py
 demo: setup
-	$(VENV)/bin/febed demo
+	$(PY) $(DEMO)
 
 test: setup test-serial test-mpi
 

@@ -1,13 +1,16 @@
 """Seed meshes: Table 2 cell counts, exact volumes and patch areas, named tags, 1 vs N ranks."""
 
-import numpy as np
-import pytest
+from pathlib import Path
 
 from mpi4py import MPI
+
+import numpy as np
+import pytest
 
 from febed.meshing import (
     PSEUDO2D_LEVELS,
     MeshError,
+    _gmsh,
     build_msh,
     facet_area,
     global_cell_count,
@@ -102,3 +105,25 @@ def test_bad_requests(tmp_path):
         build_msh("wang2d", tmp_path / "x.msh", cell="hexahedron")
     with pytest.raises(MeshError, match="mesh file not found"):
         load_msh(tmp_path / "missing.msh")
+
+
+GEO = Path(__file__).parents[1] / "meshes"
+
+
+@pytest.mark.parametrize("geo,builtin", [("pseudo2d", "pseudo2d-coarse"), ("wang2d", "wang2d")])
+def test_geo_sources_match_builders(seed_meshes, mpi_tmp_path, geo, builtin):
+    """The gmsh sources in meshes/ and the Python builders describe the same mesh."""
+    out = mpi_tmp_path / f"{geo}.msh"
+    if MPI.COMM_WORLD.rank == 0:
+        gmsh = _gmsh()
+        gmsh.clear()
+        gmsh.open(str(GEO / f"{geo}.geo"))
+        gmsh.model.mesh.generate(gmsh.model.getDimension())
+        gmsh.write(str(out))
+        gmsh.clear()
+    MPI.COMM_WORLD.barrier()
+    a, b = load_msh(out), load_msh(seed_meshes[builtin])
+    assert global_cell_count(a) == global_cell_count(b)
+    assert set(a.tags) == set(b.tags)
+    for tag in a.tags:
+        assert abs(facet_area(a, tag) / facet_area(b, tag) - 1) < 1e-12, tag
