@@ -1,0 +1,95 @@
+"""The `febed` command line: messages instead of tracebacks, output folders never clobbered."""
+
+import subprocess
+import sys
+
+import pytest
+
+from febed.case import load_case
+from febed.cli import main
+from febed.io.rundir import RESOLVED_CASE, OutputError, prepare_output
+from febed.schema import BOUNDARY, SCHEMA
+
+CASE = """
+[run]
+mode = "dem"
+end_time = 0.01
+[mesh]
+builtin = "wang2d"
+[particles]
+count = 10
+"""
+
+
+@pytest.fixture
+def case_file(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    p = tmp_path / "bed.toml"
+    p.write_text(CASE)
+    return p
+
+
+def test_params_lists_every_parameter(capsys):
+    assert main(["params"]) == 0
+    out = capsys.readouterr().out
+    for sec, params in SCHEMA.items():
+        for key in params:
+            assert f"{sec}.{key} = " in out
+    for key in BOUNDARY:
+        assert f"gas.boundary.<tag>.{key} = " in out
+    assert main(["params", "nosuch"]) == 2
+
+
+def test_check_ok_and_bad(case_file, capsys):
+    assert main(["check", str(case_file)]) == 0
+    assert "OK" in capsys.readouterr().out
+    assert main(["check", str(case_file), "--set", "particles.densty=1"]) == 2
+    err = capsys.readouterr().err
+    assert "did you mean 'density'" in err and "Traceback" not in err
+
+
+def test_check_reports_missing_mesh_tag(case_file, capsys):
+    assert main(["check", str(case_file), "--set", "gas.boundary.distributor.type=wall"]) == 2
+    err = capsys.readouterr().err
+    assert "'distributor'" in err and "the mesh has: inlet, outlet, walls" in err
+
+
+def test_output_folder_is_never_clobbered(case_file, tmp_path):
+    case = load_case(case_file)
+    out = prepare_output(case)
+    assert (out / RESOLVED_CASE).is_file()
+    assert load_case(out / RESOLVED_CASE).to_dict() == case.to_dict()  # the resolved case runs as is
+    (out / "result.txt").write_text("precious")
+    with pytest.raises(OutputError, match="--overwrite"):
+        prepare_output(case)
+    assert (out / "result.txt").read_text() == "precious"
+    prepare_output(case, overwrite=True)
+    assert not (out / "result.txt").exists()
+    # a folder febed did not write is refused even with --overwrite
+    user = tmp_path / "mine"
+    user.mkdir()
+    (user / "thesis.tex").write_text("x")
+    other = load_case(case_file, [f"output.directory={user}"])
+    with pytest.raises(OutputError, match="not written by febed"):
+        prepare_output(other, overwrite=True)
+    assert (user / "thesis.tex").exists()
+
+
+def test_unwritable_output_is_reported(case_file, tmp_path):
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    case = load_case(case_file, [f"output.directory={blocker}/sub"])
+    with pytest.raises(OutputError, match="output folder"):
+        prepare_output(case)
+
+
+def test_mesh_command(tmp_path):
+    out = tmp_path / "w.msh"
+    assert main(["mesh", "wang2d", "-o", str(out)]) == 0
+    assert out.stat().st_size > 0
+    assert main(["mesh", "wang2d", "--cell", "hexahedron", "-o", str(out)]) == 2
+
+
+def test_console_script_runs():
+    res = subprocess.run([sys.executable, "-m", "febed.cli", "--help"], capture_output=True, text=True)
+    assert res.returncode == 0 and "febed" in res.stdout
