@@ -34,7 +34,7 @@ DEMO := demos/meshes/demo_meshes.py
 demo: setup
 	$(PY) $(DEMO)
 
-test: setup test-serial test-mpi
+test: setup lint test-serial test-mpi
 
 test-serial: setup
 	$(PYTEST) -m "not slow"
@@ -51,7 +51,7 @@ bench: setup
 
 lint: setup
 	$(VENV)/bin/ruff check febed tests benchmarks demos
-	$(VENV)/bin/ruff format --check febed tests benchmarks demos
+	$(VENV)/bin/ruff format --check --quiet febed tests benchmarks demos
 
 clean:
 	rm -rf $(VENV) .venv/numba-cache
