@@ -1,0 +1,10 @@
+"""The gas phase: a node-based VANS projection solver (seed 001 §2.4.1) on DOLFINx P1/Q1 nodes.
+
+Public API: `VANSSolver`, `VANSParameters`, `BoundarySpec`, `StepInfo` (see `febed.gas.vans`), and
+`febed.gas.driver.run` for gas-only cases.
+"""
+
+from febed.gas.boundary import BoundarySpec
+from febed.gas.vans import StepInfo, VANSParameters, VANSSolver
+
+__all__ = ["BoundarySpec", "StepInfo", "VANSParameters", "VANSSolver"]

@@ -1,0 +1,138 @@
+"""Gas boundary conditions by facet-tag name, applied to nodal arrays.
+
+Each named facet tag gets a `BoundarySpec`:
+
+* `inlet` — a *superficial* velocity U_f (optionally ramped linearly from 0 over `ramp_time`) along the
+  inward normal of the tag. The nodal superficial velocity q = ε u is scaled so that the discrete inflow
+  Σ_j q_j·(−B_j) over the inlet nodes (B_j = ∫_∂Ω φ_j n ds) is exactly U_f A, whatever ε is there. A is the
+  tag's area plus the areas of `cross_section_tags` (seed 001's bottom-wall patch: U_f is defined over
+  the whole cross-section, so the open part carries U_f A_total / A_open, DESIGN.md "Readings").
+* `wall` — no-slip (q = 0) or, with `slip`, zero normal velocity (nodal normals from B over the tag).
+* `outlet` — pressure `pressure` [Pa] (Dirichlet for p, zero increment); the velocity is free.
+* `symmetry` — zero normal velocity, like a slip wall.
+
+Tags of the mesh that the specs do not name are no-slip walls. Where tags meet, a node takes the first of:
+no-slip wall, inlet, slip/symmetry, free. Pressure nodes are all the nodes of outlet facets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mpi4py import MPI
+
+import dolfinx.fem
+import numpy as np
+
+from febed.gas.operators import tag_normal_weights
+
+BOUNDARY_TYPES = ("inlet", "wall", "outlet", "symmetry")
+
+
+@dataclass
+class BoundarySpec:
+    """Condition on one facet tag (units: m/s, s, Pa)."""
+
+    type: str = "wall"
+    velocity: float | None = None
+    ramp_time: float = 0.0
+    slip: bool = False
+    pressure: float = 0.0
+    cross_section_tags: tuple[str, ...] = ()
+
+    def validate(self, name: str) -> None:
+        """Raise ValueError naming the tag and the bad field."""
+        if self.type not in BOUNDARY_TYPES:
+            raise ValueError(f"boundary {name!r}: type {self.type!r} is not one of {', '.join(BOUNDARY_TYPES)}")
+        if self.type == "inlet" and (self.velocity is None or not self.velocity >= 0.0):
+            raise ValueError(f"boundary {name!r}: an inlet needs velocity >= 0 (superficial, m/s)")
+        if self.ramp_time < 0.0:
+            raise ValueError(f"boundary {name!r}: ramp_time must be >= 0 s, got {self.ramp_time}")
+
+
+def _dofs(mesh_data, Q, name: str) -> np.ndarray:
+    fdim = mesh_data.mesh.topology.dim - 1
+    facets = np.asarray(mesh_data.facets(name), dtype=np.int32)
+    return dolfinx.fem.locate_dofs_topological(Q, fdim, facets)
+
+
+def _area(mesh_data, Q, name: str) -> float:
+    """Area of the facets of tag `name` [m^2] (length in 2D)."""
+    import ufl
+
+    ds = ufl.Measure("ds", domain=mesh_data.mesh, subdomain_data=mesh_data.facet_tags)
+    one = dolfinx.fem.Constant(mesh_data.mesh, 1.0)
+    local = dolfinx.fem.assemble_scalar(dolfinx.fem.form(one * ds(mesh_data.tag_id(name))))
+    return mesh_data.comm.allreduce(local, op=MPI.SUM)
+
+
+class NodalBoundary:
+    """Node sets and values of the gas boundary conditions (see the module docstring)."""
+
+    def __init__(self, mesh_data, ops, specs: dict[str, BoundarySpec]):
+        for name, spec in specs.items():
+            spec.validate(name)
+        mesh_data.require_tags(list(specs), "the gas boundary conditions")
+        for spec in specs.values():
+            mesh_data.require_tags(list(spec.cross_section_tags), "an inlet's cross_section_tags")
+        Q, comm = ops.Q, mesh_data.comm
+        self.comm = comm
+        self.n_owned = ops.n_owned
+        specs = {n: specs.get(n, BoundarySpec()) for n in sorted(mesh_data.tags)} | specs
+        self.specs = specs
+        dofs = {n: _dofs(mesh_data, Q, n) for n in specs}
+        empty = np.empty(0, np.int32)
+        noslip = [dofs[n] for n, s in specs.items() if s.type == "wall" and not s.slip]
+        self.noslip = np.unique(np.concatenate(noslip)) if noslip else empty
+        taken = self.noslip
+        # inlets: nodes, inward normal, superficial speed factor A_total / A_open (discrete)
+        self.inlets = []
+        for n, s in specs.items():
+            if s.type != "inlet":
+                continue
+            nodes = np.setdiff1d(dofs[n], taken)
+            taken = np.union1d(taken, nodes)
+            bw = tag_normal_weights(mesh_data, Q, [n])
+            normal = -np.array([comm.allreduce(bw[: ops.n_owned, d].sum(), op=MPI.SUM) for d in range(ops.gdim)])
+            normal /= np.linalg.norm(normal)
+            owned = nodes[nodes < ops.n_owned]
+            a_open = comm.allreduce(float(-(ops.bnormal[owned] @ normal).sum()), op=MPI.SUM)
+            a_total = _area(mesh_data, Q, n) + sum(_area(mesh_data, Q, c) for c in s.cross_section_tags)
+            self.inlets.append((nodes, normal, s, a_total, a_open))
+        slip = [dofs[n] for n, s in specs.items() if s.type == "symmetry" or (s.type == "wall" and s.slip)]
+        self.slip = np.setdiff1d(np.unique(np.concatenate(slip)), taken) if slip else empty
+        if self.slip.size:
+            names = [n for n, s in specs.items() if s.type == "symmetry" or (s.type == "wall" and s.slip)]
+            nrm = tag_normal_weights(mesh_data, Q, names)[self.slip]
+            self.slip_normal = nrm / np.linalg.norm(nrm, axis=1)[:, None]
+        else:
+            self.slip_normal = np.zeros((0, ops.gdim))
+        outs = [(dofs[n], s.pressure) for n, s in specs.items() if s.type == "outlet"]
+        self.pressure_dofs = np.unique(np.concatenate([d for d, _ in outs])) if outs else empty
+        self.pressure_values = np.zeros(self.pressure_dofs.size)
+        for d, val in outs:
+            self.pressure_values[np.searchsorted(self.pressure_dofs, d)] = val
+        self.has_outlet = comm.allreduce(self.pressure_dofs.size, op=MPI.SUM) > 0
+
+    def inflow(self, t: float) -> float:
+        """Volumetric superficial inflow Σ U_f(t) A_total over the inlets at time t [m^3/s] (m^2/s in 2D)."""
+        return sum(self._speed(s, t) * a_total for _, _, s, a_total, _ in self.inlets)
+
+    @staticmethod
+    def _speed(spec: BoundarySpec, t: float) -> float:
+        ramp = 1.0 if spec.ramp_time <= 0.0 else min(1.0, t / spec.ramp_time)
+        return spec.velocity * ramp
+
+    def apply_velocity(self, q: np.ndarray, t: float) -> None:
+        """Impose the velocity conditions on the superficial nodal velocity q (n, gdim) in place, at time t."""
+        q[self.noslip] = 0.0
+        for nodes, normal, spec, a_total, a_open in self.inlets:
+            q[nodes] = self._speed(spec, t) * a_total / a_open * normal
+        if self.slip.size:
+            qn = np.einsum("ij,ij->i", q[self.slip], self.slip_normal)
+            q[self.slip] -= qn[:, None] * self.slip_normal
+
+    def dirichlet_velocity_nodes(self) -> np.ndarray:
+        """Local nodes whose whole velocity is prescribed (no-slip walls and inlets)."""
+        parts = [self.noslip] + [nodes for nodes, *_ in self.inlets]
+        return np.unique(np.concatenate(parts))

@@ -1,0 +1,155 @@
+"""Constant nodal operators of the gas step, assembled once with DOLFINx and kept as plain CSR arrays.
+
+The gas fields live at the mesh nodes: a scalar P1 (triangles, tetrahedra) or Q1 (quadrilaterals,
+hexahedra) space `Q` whose local dof numbering (owned first, then ghosts) is the numbering of every nodal
+array. The bilinear forms below are assembled once into PETSc matrices and their owned rows copied into
+one CSR structure with local column indices, shared by all coefficients (see `febed.gas.kernels`):
+
+    grad[k, d] = ∫ φ_i ∂_d φ_j dx                      (Galerkin gradient / divergence)
+    tens[k, :] = ∫ ∂_d φ_i ∂_e φ_j dx (d = e), ∫ (∂_d φ_i ∂_e φ_j + ∂_e φ_i ∂_d φ_j) dx (d < e)
+
+plus the lumped mass (node control volume) ΔV_i = ∫ φ_i dx, the boundary normal weights
+B_i = ∫_∂Ω φ_i n ds (per facet tag too) and a nodal filter width from the surrounding cell volumes.
+With MPI every nodal vector is accumulated over ranks (reverse scatter, add) before use.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import dolfinx.fem
+import dolfinx.fem.petsc
+import numpy as np
+import ufl
+
+
+def nodal_space(mesh) -> dolfinx.fem.FunctionSpace:
+    """The scalar nodal space: P1 on simplices, Q1 on quadrilaterals/hexahedra."""
+    family = "Q" if mesh.topology.cell_type.name in ("quadrilateral", "hexahedron") else "Lagrange"
+    return dolfinx.fem.FunctionSpace(mesh, (family, 1))
+
+
+def accumulate(vec: PETSc.Vec) -> np.ndarray:
+    """Sum the ghost contributions of an assembled ghosted vector into owners, refresh ghosts; local array."""
+    vec.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    vec.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+    with vec.localForm() as loc:
+        return loc.array.copy()
+
+
+def assemble_nodal(form) -> np.ndarray:
+    """Assemble a linear form into a nodal array over the local dofs (owned + ghost), ranks summed."""
+    vec = dolfinx.fem.petsc.assemble_vector(dolfinx.fem.form(form))
+    out = accumulate(vec)
+    vec.destroy()
+    return out
+
+
+def _owned_csr(A: PETSc.Mat, imap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Owned rows of an assembled matrix as CSR with local (owned + ghost) column indices."""
+    indptr, cols, vals = A.getValuesCSR()
+    r0, r1 = imap.local_range
+    ghosts = np.asarray(imap.ghosts, dtype=np.int64)
+    order = np.argsort(ghosts)
+    cols = np.asarray(cols, dtype=np.int64)
+    local = cols - r0
+    off = (cols < r0) | (cols >= r1)
+    if off.any():
+        pos = np.searchsorted(ghosts[order], cols[off])
+        local[off] = imap.size_local + order[pos]
+    return np.asarray(indptr, dtype=np.int64), local.astype(np.int32), np.asarray(vals, dtype=np.float64)
+
+
+@dataclass
+class NodalOperators:
+    """The constant nodal operators of one mesh (see the module docstring)."""
+
+    Q: dolfinx.fem.FunctionSpace
+    n_owned: int
+    n_local: int
+    indptr: np.ndarray  # (n_owned + 1,) int64
+    indices: np.ndarray  # (nnz,) int32, local columns
+    grad: np.ndarray  # (nnz, gdim)
+    tens: np.ndarray  # (nnz, gdim (gdim + 1) / 2)
+    mass: np.ndarray  # (n_local,) ∫ φ_i dx [m^3]
+    bnormal: np.ndarray  # (n_local, gdim) ∫_∂Ω φ_i n ds [m^2]
+    width: np.ndarray  # (n_local,) filter width / cell size at the node [m]
+
+    @property
+    def gdim(self) -> int:
+        """Geometric dimension."""
+        return self.grad.shape[1]
+
+    def stiffness_rows(self, rows: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """(L f)_i for the given owned rows, L the unmodified stiffness ∫ ∇φ_i·∇φ_j dx."""
+        lap = self.tens[:, : self.gdim].sum(axis=1)
+        out = np.zeros(rows.size)
+        for n, i in enumerate(rows):
+            k0, k1 = self.indptr[i], self.indptr[i + 1]
+            out[n] = lap[k0:k1] @ f[self.indices[k0:k1]]
+        return out
+
+
+def build_operators(mesh) -> NodalOperators:
+    """Assemble every constant nodal operator of `mesh` once (collective)."""
+    Q = nodal_space(mesh)
+    gdim = mesh.geometry.dim
+    imap = Q.dofmap.index_map
+    v, w = ufl.TestFunction(Q), ufl.TrialFunction(Q)
+    forms = [v * w.dx(d) for d in range(gdim)]
+    forms += [v.dx(d) * w.dx(d) for d in range(gdim)]
+    forms += [v.dx(d) * w.dx(e) + v.dx(e) * w.dx(d) for d in range(gdim) for e in range(d + 1, gdim)]
+    pattern, coefs = None, []
+    for a in forms:
+        A = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(a * ufl.dx))
+        A.assemble()
+        indptr, indices, vals = _owned_csr(A, imap)
+        A.destroy()
+        if pattern is None:
+            pattern = (indptr, indices)
+        elif not (np.array_equal(pattern[0], indptr) and np.array_equal(pattern[1], indices)):
+            raise RuntimeError("nodal operators: assembled matrices do not share one sparsity pattern")
+        coefs.append(vals)
+    grad = np.ascontiguousarray(np.stack(coefs[:gdim], axis=1))
+    tens = np.ascontiguousarray(np.stack(coefs[gdim:], axis=1))
+    mass = assemble_nodal(v * ufl.dx)
+    n = ufl.FacetNormal(mesh)
+    bnormal = np.stack([assemble_nodal(v * n[d] * ufl.ds) for d in range(gdim)], axis=1)
+    # filter width: (mass-weighted mean volume of the cells around the node)^(1/d)
+    dg0 = dolfinx.fem.FunctionSpace(mesh, ("DG", 0))
+    vol = dolfinx.fem.Function(dg0)
+    vol.x.array[:] = assemble_nodal(ufl.TestFunction(dg0) * ufl.dx)
+    width = (assemble_nodal(v * vol * ufl.dx) / mass) ** (1.0 / gdim)
+    return NodalOperators(
+        Q=Q,
+        n_owned=imap.size_local,
+        n_local=imap.size_local + imap.num_ghosts,
+        indptr=pattern[0],
+        indices=pattern[1],
+        grad=grad,
+        tens=tens,
+        mass=mass,
+        bnormal=bnormal,
+        width=width,
+    )
+
+
+def tag_normal_weights(mesh_data, Q, names) -> np.ndarray:
+    """(n_local, gdim) array ∫_Γ φ_i n ds over the facets of the named tags (ranks summed)."""
+    mesh = mesh_data.mesh
+    gdim = mesh.geometry.dim
+    v = ufl.TestFunction(Q)
+    n = ufl.FacetNormal(mesh)
+    ds = ufl.Measure("ds", domain=mesh, subdomain_data=mesh_data.facet_tags)
+    ids = tuple(mesh_data.tag_id(nm) for nm in names)
+    if not ids:
+        return np.zeros((Q.dofmap.index_map.size_local + Q.dofmap.index_map.num_ghosts, gdim))
+    return np.stack([assemble_nodal(v * n[d] * ds(ids)) for d in range(gdim)], axis=1)
+
+
+def global_sum(comm, local_owned: np.ndarray | float) -> float:
+    """Sum of owned values over all ranks."""
+    return comm.allreduce(float(np.sum(local_owned)), op=MPI.SUM)
