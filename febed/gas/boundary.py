@@ -7,7 +7,8 @@ Each named facet tag gets a `BoundarySpec`:
   Σ_j q_j·(−B_j) over the inlet nodes (B_j = ∫_∂Ω φ_j n ds) is exactly U_f A, whatever ε is there. A is the
   tag's area plus the areas of `cross_section_tags` (seed 001's bottom-wall patch: U_f is defined over
   the whole cross-section, so the open part carries U_f A_total / A_open, DESIGN.md "Readings").
-* `wall` — no-slip (q = 0) or, with `slip`, zero normal velocity (nodal normals from B over the tag).
+* `wall` — no-slip (q = 0) or, with `slip`, zero normal velocity: at each node the directions of
+  ∫ φ_i n⊗n ds with a significant weight are removed (so corners and edges are handled).
 * `outlet` — pressure `pressure` [Pa] (Dirichlet for p, zero increment); the velocity is free.
 * `symmetry` — zero normal velocity, like a slip wall.
 
@@ -24,7 +25,7 @@ from mpi4py import MPI
 import dolfinx.fem
 import numpy as np
 
-from febed.gas.operators import tag_normal_weights
+from febed.gas.operators import normal_tensor_weights, tag_normal_weights
 
 BOUNDARY_TYPES = ("inlet", "wall", "outlet", "symmetry")
 
@@ -101,12 +102,15 @@ class NodalBoundary:
             self.inlets.append((nodes, normal, s, a_total, a_open))
         slip = [dofs[n] for n, s in specs.items() if s.type == "symmetry" or (s.type == "wall" and s.slip)]
         self.slip = np.setdiff1d(np.unique(np.concatenate(slip)), taken) if slip else empty
+        # slip projector per node: remove every direction in which the adjacent slip facets have a
+        # significant normal (one on a flat wall; all at a 2D corner; two along a 3D edge)
+        self.slip_proj = np.zeros((self.slip.size, ops.gdim, ops.gdim))
         if self.slip.size:
             names = [n for n, s in specs.items() if s.type == "symmetry" or (s.type == "wall" and s.slip)]
-            nrm = tag_normal_weights(mesh_data, Q, names)[self.slip]
-            self.slip_normal = nrm / np.linalg.norm(nrm, axis=1)[:, None]
-        else:
-            self.slip_normal = np.zeros((0, ops.gdim))
+            nn = normal_tensor_weights(mesh_data, Q, names)[self.slip]
+            w, vec = np.linalg.eigh(nn)
+            keep = w < 0.2 * w[:, -1:]
+            self.slip_proj = np.einsum("nik,nk,njk->nij", vec, keep.astype(float), vec)
         outs = [(dofs[n], s.pressure) for n, s in specs.items() if s.type == "outlet"]
         self.pressure_dofs = np.unique(np.concatenate([d for d, _ in outs])) if outs else empty
         self.pressure_values = np.zeros(self.pressure_dofs.size)
@@ -129,8 +133,7 @@ class NodalBoundary:
         for nodes, normal, spec, a_total, a_open in self.inlets:
             q[nodes] = self._speed(spec, t) * a_total / a_open * normal
         if self.slip.size:
-            qn = np.einsum("ij,ij->i", q[self.slip], self.slip_normal)
-            q[self.slip] -= qn[:, None] * self.slip_normal
+            q[self.slip] = np.einsum("nij,nj->ni", self.slip_proj, q[self.slip])
 
     def dirichlet_velocity_nodes(self) -> np.ndarray:
         """Local nodes whose whole velocity is prescribed (no-slip walls and inlets)."""

@@ -22,7 +22,8 @@ def momentum_rhs(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, 
     """Explicit momentum right-hand side per node [N]: −ρ∇·(q⊗u) − ∇p + ∇·(ν∇u) + Taylor-Galerkin term.
 
     Args:
-        indptr, indices: CSR rows (owned nodes) and local column indices.
+        indptr: CSR row pointers (owned nodes).
+        indices: local column indices (owned + ghost nodes).
         grad: (nnz, gdim) Galerkin gradient coefficients [m^(d-1)].
         tens: (nnz, ntens) second-derivative coefficients [m^(d-2)].
         q: (n_local, gdim) superficial velocity ε u [m/s].

@@ -150,6 +150,21 @@ def tag_normal_weights(mesh_data, Q, names) -> np.ndarray:
     return np.stack([assemble_nodal(v * n[d] * ds(ids)) for d in range(gdim)], axis=1)
 
 
+def normal_tensor_weights(mesh_data, Q, names) -> np.ndarray:
+    """(n_local, gdim, gdim) array ∫_Γ φ_i n⊗n ds over the facets of the named tags (ranks summed)."""
+    mesh = mesh_data.mesh
+    gdim = mesh.geometry.dim
+    v = ufl.TestFunction(Q)
+    n = ufl.FacetNormal(mesh)
+    ds = ufl.Measure("ds", domain=mesh, subdomain_data=mesh_data.facet_tags)
+    ids = tuple(mesh_data.tag_id(nm) for nm in names)
+    out = np.zeros((Q.dofmap.index_map.size_local + Q.dofmap.index_map.num_ghosts, gdim, gdim))
+    for d in range(gdim):
+        for e in range(d, gdim):
+            out[:, d, e] = out[:, e, d] = assemble_nodal(v * n[d] * n[e] * ds(ids))
+    return out
+
+
 def global_sum(comm, local_owned: np.ndarray | float) -> float:
     """Sum of owned values over all ranks."""
     return comm.allreduce(float(np.sum(local_owned)), op=MPI.SUM)

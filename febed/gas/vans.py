@@ -233,6 +233,21 @@ class VANSSolver:
             self._s2 = dolfinx.fem.Function(self.V)
         return self._s2
 
+    def set_void_fraction(self, eps: float | np.ndarray) -> None:
+        """Set ε at the current time (initial condition; no ∂ε/∂t source): scalar or nodal array."""
+        e = self._local(eps, "eps", scalar_ok=True)
+        self._check_eps(e)
+        self.eps[:] = e
+        self._update_u()
+
+    def set_pressure(self, p: float | np.ndarray) -> None:
+        """Set the pressure field (initial condition) [Pa]; outlet nodes keep their prescribed value."""
+        self.p[:] = self._local(p, "p", scalar_ok=True)
+        self.p[self.bc.pressure_dofs] = self.bc.pressure_values
+        kernels.gradient(self.ops.indptr, self.ops.indices, self.ops.grad, self.p, self.gp_owned)
+        self.grad_p[: self.n_owned] = self.gp_owned / self.ops.mass[: self.n_owned, None]
+        self._gradp.x.scatter_forward()
+
     def _check_eps(self, eps: np.ndarray) -> None:
         if not (np.all(eps[: self.n_owned] > 0.0) and np.all(eps[: self.n_owned] <= 1.0)):
             raise ValueError("eps (void fraction) must lie in (0, 1] at every node")

@@ -1,0 +1,59 @@
+"""Small tagged meshes and solver factories shared by the gas tests (imported as `_gas_cases`)."""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+
+import dolfinx
+import numpy as np
+
+from febed.gas import BoundarySpec, VANSParameters, VANSSolver
+from febed.meshing import MeshData
+
+
+def tagged_mesh(mesh, tags: dict[str, callable]) -> MeshData:
+    """MeshData with facet tags given as name -> predicate on facet-midpoint coordinates (first match wins)."""
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim - 1, tdim)
+    idx, val, taken = [], [], np.empty(0, np.int32)
+    names = {}
+    for k, (name, pred) in enumerate(tags.items(), start=1):
+        f = dolfinx.mesh.locate_entities_boundary(mesh, tdim - 1, pred)
+        f = np.setdiff1d(f, taken)
+        taken = np.union1d(taken, f)
+        idx.append(f)
+        val.append(np.full(f.size, k, np.int32))
+        names[name] = k
+    idx, val = np.concatenate(idx), np.concatenate(val)
+    order = np.argsort(idx)
+    ft = dolfinx.mesh.meshtags(mesh, tdim - 1, idx[order].astype(np.int32), val[order])
+    return MeshData(mesh=mesh, facet_tags=ft, cell_tags=None, tags=names, source="test")
+
+
+def channel(length, height, nx, ny, comm=MPI.COMM_WORLD, cell=dolfinx.mesh.CellType.quadrilateral, patch=None):
+    """2D channel along x: `inlet` at x = 0, `walls` at y = 0, H, `outlet` at x = L; optional inlet `patch`."""
+    mesh = dolfinx.mesh.create_rectangle(comm, [[0.0, 0.0], [length, height]], [nx, ny], cell)
+    tags = {}
+    if patch is not None:
+        lo, hi = patch
+        tags["patch"] = lambda x: np.isclose(x[0], 0.0) & (x[1] >= lo - 1e-12) & (x[1] <= hi + 1e-12)
+    tags["inlet"] = lambda x: np.isclose(x[0], 0.0)
+    tags["walls"] = lambda x: np.isclose(x[1], 0.0) | np.isclose(x[1], height)
+    tags["outlet"] = lambda x: np.isclose(x[0], length)
+    return tagged_mesh(mesh, tags)
+
+
+def channel_solver(md, velocity, rho=1.0, mu=0.1, eps=1.0, slip=False, **kw) -> VANSSolver:
+    """A VANS solver on a `channel` mesh with an inlet, walls and an outlet."""
+    bcs = {
+        "inlet": BoundarySpec("inlet", velocity=velocity, cross_section_tags=("patch",) if "patch" in md.tags else ()),
+        "walls": BoundarySpec("wall", slip=slip),
+        "outlet": BoundarySpec("outlet", pressure=0.0),
+    }
+    par = VANSParameters(density=rho, viscosity=mu, dt_max=1.0, boundaries=bcs, **kw)
+    return VANSSolver(md, par, eps=eps)
+
+
+def owned(solver, a):
+    """Owned rows of a nodal array."""
+    return a[: solver.n_owned]
