@@ -13,11 +13,11 @@ import math
 import numpy as np
 from numba import njit
 
-from febed.dem.contact import pair_force
+from febed.dem.contact import FAST, pair_force
 from febed.dem.walls import MAX_WALL_CONTACTS, accept_contacts, wall_point
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FAST)
 def compute_forces(
     pos,
     vel,
@@ -85,9 +85,10 @@ def compute_forces(
             dist = math.sqrt(d2)
             delta = rs - dist  # seed 001 eq 10
             worst = max(worst, delta / (2.0 * min(ri, rj)))
-            nx = dx / dist  # seed 001 eq 12: from i towards j
-            ny = dy / dist
-            nz = dz / dist
+            inv = 1.0 / dist
+            nx = dx * inv  # seed 001 eq 12: from i towards j
+            ny = dy * inv
+            nz = dz * inv
             # velocity of i's surface relative to j's at the contact point (seed 000 eq 9)
             wx = ri * omega[i, 0] + rj * omega[j, 0]
             wy = ri * omega[i, 1] + rj * omega[j, 1]
@@ -97,7 +98,9 @@ def compute_forces(
             vz = vel[i, 2] - vel[j, 2] + (wx * ny - wy * nx)
             mj = mass[j]
             m_eff = mi * mj / (mi + mj)  # seed 001 eq 11
-            mt_eff = 1.0 / (1.0 / mi + 1.0 / mj + ki + rj * rj / inertia[j] * rot)
+            mt_eff = m_eff
+            if rotation:
+                mt_eff = 1.0 / (1.0 / m_eff + ki + rj * rj / inertia[j])
             fx, fy, fz, hx, hy, hz = pair_force(
                 pp, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hist_in[k, 0], hist_in[k, 1], hist_in[k, 2],
                 dt_eval, dt_store,
@@ -141,6 +144,7 @@ def compute_forces(
     dl = np.empty(MAX_WALL_CONTACTS)
     kk = np.empty(MAX_WALL_CONTACTS, dtype=np.int64)
     acc = np.empty(MAX_WALL_CONTACTS, dtype=np.bool_)
+    order = np.empty(MAX_WALL_CONTACTS, dtype=np.int64)
     npl = plane_p.shape[0]
     for i in range(n_owned):
         a0 = wstart[i]
@@ -193,7 +197,7 @@ def compute_forces(
                 whist_out[k, 2] = 0.0
         if cnt == 0:
             continue
-        accept_contacts(kind, qs, ms, dl, cnt, acc, 1e-9 * ri)
+        accept_contacts(kind, qs, ms, dl, cnt, acc, order, 1e-9 * ri)
         mi = mass[i]
         mt_eff = 1.0 / (1.0 / mi + ri * ri / inertia[i] * rot)
         for c in range(cnt):

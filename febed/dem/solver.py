@@ -276,10 +276,8 @@ class DEM:
             self._fext, self.pos_ref, 0.5 * pl.skin, pl.start, pl.nbr, pl.hist, self.wstart, self.wid, self.whist,
             W.plane_p, W.plane_n, W.facets, W.nv, self.pp, self.pw, p.rotation, self.gvec, p.dim == 2,
         )  # fmt: skip
-        if self.integrator.name == "rk2":
-            s = self._scratch(P.n_owned, pl.hist.shape[0], self.whist.shape[0])
-            return self.integrator.steps(*args, *s)
-        return self.integrator.steps(*args)
+        s = self._scratch(P.n, pl.hist.shape[0], self.whist.shape[0])
+        return self.integrator.steps(*args, *s)
 
     def _scratch(self, n: int, npairs: int, nwall: int):
         s = getattr(self, "_rk2_scratch", None)

@@ -190,9 +190,11 @@ def _facet_grid(facets, nv, reach, lo, size, dims):
 
 
 @njit(cache=True)
-def accept_contacts(kind, qs, ms, delta, cnt, accepted, tol):
+def accept_contacts(kind, qs, ms, delta, cnt, accepted, order, tol):
     """Mark which of the cnt wall contacts of one particle push it (rule in the module docstring)."""
-    order = np.empty(cnt, dtype=np.int64)
+    if cnt == 1:
+        accepted[0] = True
+        return
     for a in range(cnt):
         order[a] = a
     for a in range(1, cnt):  # insertion sort by (kind, -delta)
