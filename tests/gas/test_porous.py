@@ -1,0 +1,82 @@
+"""Porous media: the Ergun pressure gradient, global mass balance with a time-varying ε, stiff momentum exchange."""
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+from _gas_cases import channel, channel_solver, owned
+
+RHO, MU, D, EPS, U = 1.2, 1.8e-5, 1e-3, 0.45, 0.3
+
+
+def ergun_gradient(U, eps):
+    """Ergun's -dp/dx for superficial velocity U [Pa/m]."""
+    return 150 * MU * (1 - eps) ** 2 * U / (eps**3 * D**2) + 1.75 * RHO * (1 - eps) * U**2 / (eps**3 * D)
+
+
+def ergun_K(u, eps):
+    """Momentum-exchange coefficient K with K u = Ergun's -dp/dx, u the interstitial speed [kg/(m^3 s)]."""
+    return 150 * MU * (1 - eps) ** 2 / (eps**2 * D**2) + 1.75 * RHO * (1 - eps) * np.abs(u) / (eps * D)
+
+
+def test_ergun_pressure_gradient():
+    md = channel(0.1, 0.02, 40, 8)
+    s = channel_solver(md, U, rho=RHO, mu=MU, eps=EPS, slip=True)
+    s.q[:, 0] = U
+    s.set_void_fraction(EPS)
+    for _ in range(300):
+        K = ergun_K(np.linalg.norm(s.u, axis=1), s.eps)
+        info = s.step(s.compute_dt(), K=K)
+    x = owned(s, s.x)
+    inner = (x[:, 0] > 0.02) & (x[:, 0] < 0.08)
+    gp = owned(s, s.grad_p)[inner, 0]
+    mean = MPI.COMM_WORLD.allreduce(float(gp.sum())) / MPI.COMM_WORLD.allreduce(gp.size)
+    assert -mean == pytest.approx(ergun_gradient(U, EPS), rel=0.01)
+    assert abs(info.outflow - info.inflow) < 1e-6 * info.inflow
+
+
+def varying_eps(x, t, width, height):
+    return 0.6 + 0.25 * np.sin(np.pi * x[:, 1] / width) * np.sin(np.pi * x[:, 0] / height) * np.cos(40 * t)
+
+
+def test_mass_balance_time_varying_eps():
+    # gas enters at x = 0 through an inlet with a wall patch counted in the cross-section (seed 001 bed)
+    length, width, Uf = 0.2, 0.09, 0.5
+    md = channel(length, width, 40, 18, patch=(0.035, 0.055))
+    s = channel_solver(md, Uf, rho=RHO, mu=MU, eps=varying_eps(np.zeros((1, 3)), 0.0, width, length)[0])
+    s.set_void_fraction(varying_eps(s.x, 0.0, width, length))
+    worst = 0.0
+    for _ in range(60):
+        dt = s.compute_dt()
+        info = s.step(dt, eps=varying_eps(s.x, s.t + dt, width, length))
+        assert info.inflow == pytest.approx(Uf * width, rel=1e-12)  # U_f over the whole cross-section
+        worst = max(worst, abs(info.mass_imbalance) / (RHO * info.inflow))
+    print("worst relative mass imbalance per step", worst)
+    assert worst < 1e-6
+    assert abs(info.storage_rate) > 1e-3 * info.inflow  # ε really varies
+
+
+def test_inlet_ramp():
+    md = channel(0.2, 0.05, 8, 4)
+    s = channel_solver(md, 0.4, rho=RHO, mu=MU)
+    s.bc.inlets[0][2].ramp_time = 0.1
+    info = s.step(0.025)
+    assert info.inflow == pytest.approx(0.4 * 0.05 * 0.25, rel=1e-12)
+    with pytest.raises(ValueError, match="dt must be > 0"):
+        s.step(0.0)
+    with pytest.raises(ValueError, match="eps"):
+        s.step(1e-3, eps=np.full(3, 0.5))
+
+
+def test_stiff_momentum_exchange_stays_bounded():
+    md = channel(0.1, 0.04, 20, 8)
+    s = channel_solver(md, U, rho=RHO, mu=MU, eps=EPS)
+    dt = 1e-3
+    K = 1e3 * RHO * EPS / dt
+    rng = np.random.default_rng(1)
+    vbar = 0.5 * (rng.random((s.n_local, 2)) - 0.5)
+    for _ in range(100):
+        info = s.step(dt, K=K, Kv=K * vbar)
+    speed = MPI.COMM_WORLD.allreduce(float(np.abs(owned(s, s.u)).max()), op=MPI.MAX)
+    assert np.isfinite(speed) and speed < 10 * (U / EPS + 0.25)
+    assert abs(info.mass_imbalance) < 1e-6 * RHO * info.inflow
