@@ -5,9 +5,9 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import pytest
-
 from mpi4py import MPI
+
+import pytest
 
 
 @pytest.fixture
