@@ -134,9 +134,18 @@ def insert(dem, count: int, lo, hi, diameter: float, density: float, how: str = 
     return dem.add_particles(pos, diameter, density)
 
 
-def settle(dem, energy: float, max_time: float = 5.0, chunk: int = 200, log=None) -> float:
-    """Advance `dem` until the mean kinetic energy per particle is below `energy` (J); returns the time taken (s)."""
+def settle(dem, energy: float, max_time: float = 5.0, chunk: int = 200, log=None, min_time=None) -> float:
+    """Advance `dem` until the mean kinetic energy per particle is below `energy` (J); returns the time taken (s).
+
+    Particles inserted at rest have no kinetic energy yet: the criterion is applied only after `min_time`
+    (default: the free-fall time over the bed's extent along gravity, sqrt(2 h / g)).
+    """
     t0 = dem.time
+    if min_time is None:
+        g = float(np.linalg.norm(dem.gvec))
+        x = dem.particles.pos[: dem.particles.n_owned]
+        h = float(np.ptp(x @ dem.gvec)) / g if g > 0 and x.shape[0] else 0.0
+        min_time = math.sqrt(2.0 * h / g) if g > 0 else 0.0
     wall = time.time()
     while dem.time - t0 < max_time:
         dem.advance(chunk)
@@ -144,7 +153,7 @@ def settle(dem, energy: float, max_time: float = 5.0, chunk: int = 200, log=None
         if log is not None and time.time() - wall > 5.0:
             log.info(f"settling: t = {dem.time - t0:.4f} s, mean kinetic energy {ke:.3e} J (target {energy:.1e})")
             wall = time.time()
-        if ke < energy:
+        if ke < energy and dem.time - t0 >= min_time:
             break
     return dem.time - t0
 

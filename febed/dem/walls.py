@@ -294,3 +294,18 @@ class Walls:
                 d = wall_distance(pos[i, 0], pos[i, 1], pos[i, 2], w, self.plane_p, self.plane_n, self.facets, self.nv)
                 out[i] = min(out[i], d)
         return out
+
+
+def touching(walls: Walls, pos: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Boolean mask of the spheres (centres pos (n, 3), radii m) that overlap or cross any wall."""
+    n = pos.shape[0]
+    walls.prepare(float(np.max(radius)) if n else 0.0)
+    wstart = np.zeros(n + 1, dtype=np.int64)
+    wid = np.zeros(max(16, n), dtype=np.int64)
+    args = (pos, radius, n, 0.0, walls.plane_p, walls.plane_n, walls.facets, walls.nv, walls.glo, walls.gsize,
+            walls.gdims, walls.gstart, walls.gitems, wstart)  # fmt: skip
+    need = build_wall_pairs(*args, wid)
+    if need > wid.size:
+        wid = np.zeros(need, dtype=np.int64)
+        build_wall_pairs(*args, wid)
+    return np.diff(wstart) > 0

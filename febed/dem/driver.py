@@ -1,0 +1,169 @@
+"""Pure-DEM run (`[run] mode = "dem"`): walls from the mesh, a packed or inserted bed, stepping, output.
+
+Walls are the boundary facets of the case mesh whose `[gas.boundary.<tag>]` says particles collide with
+them: every tag with `particles = true` except outlets, plus outlets with `particles = false` (closed to
+particles). Without any `[gas.boundary]` table every tagged boundary is a wall. Particles that leave the
+mesh's bounding box (through an open outlet) are removed and counted in the log.
+
+The bed: `[particles] bed_file` is loaded if it exists; if it does not and `pack_if_missing`, particles are
+inserted, settled to `settle_energy` and saved there, and the run starts from the packed bed. Without a
+bed file the inserted particles are simply released at t = 0 (a pour).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+
+from febed.dem.insertion import count_from_mass, lattice_positions, load_bed, random_positions, save_bed, settle
+from febed.dem.particles import Particles
+from febed.dem.solver import DEM
+from febed.dem.walls import Walls, touching
+
+
+def wall_tags(case, md) -> list[str]:
+    """Mesh tags that confine particles, from the case's boundary table (see module docstring)."""
+    if not case.boundary:
+        return sorted(md.tags)
+    tags = []
+    for tag, b in case.boundary.items():
+        if (b.type != "outlet" and b.particles) or (b.type == "outlet" and not b.particles):
+            tags.append(tag)
+    return sorted(tags)
+
+
+def walls_from_mesh(case, md) -> Walls:
+    """Facet walls (allgathered boundary facets) of the case's particle-confining tags."""
+    tags = wall_tags(case, md)
+    if not tags:
+        return Walls()
+    return Walls(facets=md.boundary_facet_coords(tags))
+
+
+def inside_mesh(md, pos: np.ndarray) -> np.ndarray:
+    """Boolean mask of the points (n, 3) inside a cell of the (local) mesh."""
+    from dolfinx import geometry
+
+    mesh = md.mesh
+    tree = geometry.BoundingBoxTree(mesh, mesh.topology.dim)
+    cand = geometry.compute_collisions(tree, np.ascontiguousarray(pos, dtype=np.float64))
+    cells = geometry.compute_colliding_cells(mesh, cand, np.ascontiguousarray(pos, dtype=np.float64))
+    return np.diff(cells.offsets) > 0
+
+
+def _region(case, md, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    x = md.mesh.geometry.x
+    lo = np.minimum.reduce(md.comm.allgather(x.min(axis=0)))
+    hi = np.maximum.reduce(md.comm.allgather(x.max(axis=0)))
+    r = np.asarray(case.particles.region, dtype=float)
+    rlo = np.where(np.isfinite(r[:3]), np.maximum(r[:3], lo), lo)
+    rhi = np.where(np.isfinite(r[3:]), np.minimum(r[3:], hi), hi)
+    if dim == 2:
+        rlo[2] = rhi[2] = 0.0
+    if np.any(rhi[:dim] <= rlo[:dim]):
+        raise ValueError(f"[particles] region {list(r)} does not intersect the mesh box {lo}..{hi}")
+    return rlo, rhi
+
+
+def insert_in_mesh(case, md, walls: Walls, dim: int) -> np.ndarray:
+    """Centres of the case's particles, in its region, inside the mesh and clear of the walls."""
+    p = case.particles
+    d = p.diameter
+    count = p.count if p.count > 0 else (count_from_mass(p.bed_mass, d, p.density) if p.bed_mass > 0 else 0)
+    if count <= 0:
+        raise ValueError("[particles] give count > 0 or bed_mass > 0 (or an existing bed_file)")
+    lo, hi = _region(case, md, dim)
+    factor = 1.0
+    for _ in range(8):
+        k = int(math.ceil(count * factor))
+        try:
+            if p.insertion == "lattice":
+                pos = lattice_positions(k, lo, hi, d, dim, rng=np.random.default_rng(case.run.seed))
+            else:
+                pos = random_positions(k, lo, hi, d, dim, seed=case.run.seed)
+        except ValueError:
+            break
+        ok = inside_mesh(md, pos) & ~touching(walls, pos, np.full(k, 0.5 * d))
+        if ok.sum() >= count:
+            return pos[ok][:count]
+        factor *= 1.6 * count / max(ok.sum(), 1) if ok.sum() else 2.0
+    raise ValueError(
+        f"could not place {count} particles of {d} m in [particles] region {lo}..{hi} inside the mesh; "
+        "enlarge the region or use insertion = 'lattice'"
+    )
+
+
+def build_dem(case, md, log) -> DEM:
+    """The DEM of a case: walls from the mesh and the bed loaded, or inserted (and packed/saved if asked)."""
+    dim = md.gdim
+    walls = walls_from_mesh(case, md)
+    log.info(f"DEM walls: {walls.count} facets of tags {wall_tags(case, md)}, dim {dim}")
+    p = case.particles
+    bed_path = case.resolve_path(p.bed_file) if p.bed_file else None
+    if bed_path is not None and Path(bed_path).exists():
+        parts, _ = load_bed(bed_path)
+        log.info(f"loaded packed bed {bed_path}: {parts.n_owned} particles")
+        return DEM.from_case(case, walls=walls, dim=dim, particles=parts)
+    if bed_path is not None and not p.pack_if_missing:
+        raise ValueError(f"[particles] bed_file {bed_path} does not exist and pack_if_missing = false")
+    dem = DEM.from_case(case, walls=walls, dim=dim, particles=Particles())
+    pos = insert_in_mesh(case, md, walls, dim)
+    dem.add_particles(pos, p.diameter, p.density)
+    log.info(f"inserted {pos.shape[0]} particles ({p.insertion}); DEM step {dem.dt:.3e} s")
+    if bed_path is not None:
+        log.info(f"packing the bed until the mean kinetic energy < {p.settle_energy:g} J ...")
+        t = settle(dem, p.settle_energy, max_time=10.0, log=log)
+        save_bed(bed_path, dem.particles, settle_time=t)
+        log.info(f"packed in {t:.3f} s of simulated time; saved {bed_path}")
+        dem = DEM.from_case(case, walls=walls, dim=dim, particles=dem.particles)
+    return dem
+
+
+def run(case, outdir, log, comm=MPI.COMM_WORLD) -> DEM:
+    """Run a pure-DEM case to `run.end_time`, writing particle output to `outdir`; returns the DEM."""
+    from febed.io.particles import ParticleWriter
+    from febed.meshing import load_case_mesh
+
+    if comm.size > 1:
+        raise ValueError("[run] mode = 'dem' runs on one process for now (the DEM has no MPI decomposition yet)")
+    md = load_case_mesh(case, comm)
+    dem = build_dem(case, md, log)
+    lo = md.mesh.geometry.x.min(axis=0) - 1e-9
+    hi = md.mesh.geometry.x.max(axis=0) + 1e-9
+    writer = ParticleWriter(Path(outdir) / "particles", comm=comm)
+    dt = dem.dt
+    end = case.run.end_time
+    out_every = case.output.particle_interval
+    log.info(f"DEM: {dem.particles.n_owned} particles, dt = {dt:.3e} s (T_C/{dem.params.dt_factor:g}), "
+             f"{dem.params.integrator}, law {dem.params.contact_model}, to t = {end:g} s")  # fmt: skip
+    writer.write(dem.time, dem.particles)
+    next_out = out_every
+    start_wall = last_log = time.time()
+    left_total = 0
+    while dem.time < end - 0.5 * dt:
+        target = min(end, next_out)
+        n = max(1, int(round((target - dem.time) / dt)))
+        chunk = min(n, 2000)
+        dem.advance(chunk, dt)
+        gone = np.any((dem.particles.pos < lo) | (dem.particles.pos > hi), axis=1)
+        if gone.any():
+            left_total += int(gone.sum())
+            dem.remove_particles(gone)
+        if dem.time >= next_out - 0.5 * dt:
+            writer.write(dem.time, dem.particles)
+            next_out += out_every
+        now = time.time()
+        if now - last_log > case.output.progress_interval:
+            frac = dem.time / end
+            eta = (now - start_wall) * (1 - frac) / max(frac, 1e-12)
+            log.info(f"t = {dem.time:.5f} / {end:g} s, {dem.steps} steps, {dem.particles.n_owned} particles, "
+                     f"{left_total} left, ETA {eta:.0f} s")  # fmt: skip
+            last_log = now
+    log.info(f"DEM done: t = {dem.time:.5f} s, {dem.steps} steps in {time.time() - start_wall:.1f} s; "
+             f"max overlap {100 * dem.max_overlap:.3f} % d; {left_total} particles left the domain")  # fmt: skip
+    return dem
