@@ -1,0 +1,203 @@
+"""Drag closures and the particle forces of the gas (seed 001 eqs 20-27, seed 000 eqs 2-6).
+
+Every drag law has ONE signature and returns ONE quantity:
+
+    K = law(eps, slip, d, rho_g, mu_g)
+
+the momentum-exchange coefficient of one sphere of diameter d (m) in kg/s, K = m_p/τ_p (seed 001 eq 20)
+= V_p β/(1 - ε) (seed 000 eq 2), so that the drag force on the particle is F_D = K (u_@p - v_p) (N) and the
+gas receives -K (u - v) (implicit: K and K v go to the nodes). Arguments: local void fraction eps (> 0),
+slip speed |u_@p - v_p| (m/s), d (m), gas density rho_g (kg/m^3), gas viscosity mu_g (Pa s). The particle
+density cancels out of m_p/τ_p. Written with C_D Re_p (finite at zero slip) so K is finite at slip = 0.
+
+Coarse-grained particles representing n_orig originals: K = n_orig * law(eps, slip, d_orig, ...), i.e. the
+drag of the parcel is n_orig times that of one original particle at the parcel's velocity (`drag_kernel`).
+
+Adding a law is one function and one decorator line: `@DRAG_LAWS.register("name")` over an
+`@njit(cache=True)` function with the signature above.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from febed.schema import DRAG_LAWS
+
+
+@njit(cache=True)
+def _cd_re_single(re):
+    """C_D Re_p of an isolated sphere: 24 (1 + 0.15 Re^0.687) below Re = 1000, 0.44 Re above (seed 001 eq 24)."""
+    if re < 1000.0:
+        return 24.0 * (1.0 + 0.15 * re**0.687)
+    return 0.44 * re
+
+
+@njit(cache=True)
+def _k_from_cd_re(cd_re, d, mu_g):
+    """K = m_p/τ_p = π μ d C_D Re_p / 8 (seed 001 eqs 20-21: τ_p = 4 ρ_p d² / (3 μ C_D Re_p))."""
+    return math.pi * mu_g * d * cd_re / 8.0
+
+
+@DRAG_LAWS.register("stokes")
+@njit(cache=True)
+def stokes(eps, slip, d, rho_g, mu_g):
+    """Stokes drag of an isolated sphere: K = 3 π μ d (kg/s); ε, slip and ρ_g unused (C_D = 24/Re)."""
+    return 3.0 * math.pi * mu_g * d
+
+
+@DRAG_LAWS.register("schiller-naumann")
+@njit(cache=True)
+def schiller_naumann(eps, slip, d, rho_g, mu_g):
+    """Schiller-Naumann drag of an isolated sphere: K = π μ d C_D Re / 8 (kg/s), ε unused.
+
+    Re = ρ_g |u - v| d / μ; C_D = 24/Re (1 + 0.15 Re^0.687) for Re < 1000, 0.44 otherwise (seed 000 eq 4,
+    seed 001 eq 24 without the ε^-2.7 factor); K = 3 π μ d (1 + 0.15 Re^0.687) below Re = 1000.
+    """
+    re = rho_g * slip * d / mu_g
+    return _k_from_cd_re(_cd_re_single(re), d, mu_g)
+
+
+@DRAG_LAWS.register("wen-yu")
+@njit(cache=True)
+def wen_yu(eps, slip, d, rho_g, mu_g):
+    """Wen & Yu drag as in seed 001 eq 24: K = π μ d C_D,WY Re_p / 8 (kg/s).
+
+    Re_p = ε ρ_g |u - v| d / μ (eq 21); C_D,WY = 24/Re_p (1 + 0.15 Re_p^0.687) ε^-2.7 for Re_p < 1000,
+    0.44 ε^-2.7 otherwise.
+    """
+    re = eps * rho_g * slip * d / mu_g
+    return _k_from_cd_re(_cd_re_single(re) * eps**-2.7, d, mu_g)
+
+
+@DRAG_LAWS.register("ergun")
+@njit(cache=True)
+def ergun(eps, slip, d, rho_g, mu_g):
+    """Ergun drag as in seed 001 eq 25: K = π μ d C_D,ER Re_p / 8 (kg/s).
+
+    C_D,ER = (200 (1 - ε)/Re_p + 7/3) / ε, Re_p = ε ρ_g |u - v| d / μ, so
+    K = π μ d (200 (1 - ε) + 7/3 Re_p) / (8 ε), the classical 150/1.75 Ergun with K = V_p β/(1 - ε).
+    """
+    re = eps * rho_g * slip * d / mu_g
+    return _k_from_cd_re((200.0 * (1.0 - eps) + 7.0 / 3.0 * re) / eps, d, mu_g)
+
+
+@DRAG_LAWS.register("gidaspow-blend")
+@njit(cache=True)
+def gidaspow_blend(eps, slip, d, rho_g, mu_g):
+    """Huilin-Gidaspow blend of Wen-Yu and Ergun, seed 001 eqs 20-25: K = φ K_WY + (1 - φ) K_ER (kg/s).
+
+    φ_gs = arctan(150 * 1.75 (0.2 - (1 - ε))) / π + 0.5 (eq 22); C_D = φ C_D,WY + (1 - φ) C_D,ER (eq 23) with
+    eqs 24-25 (see `wen_yu`, `ergun`); K = m_p/τ_p = π μ d C_D Re_p / 8 (eqs 20-21).
+    """
+    phi = math.atan(150.0 * 1.75 * (0.2 - (1.0 - eps))) / math.pi + 0.5
+    return phi * wen_yu(eps, slip, d, rho_g, mu_g) + (1.0 - phi) * ergun(eps, slip, d, rho_g, mu_g)
+
+
+@njit(cache=True)
+def emms_heterogeneity(eps, re):
+    """EMMS heterogeneity index H_d = a (Re_p + b)^c with a, b, c from seed 000 Table 1 (eq 6).
+
+    ε is clamped into [0.4, 1] (DESIGN.md "Readings"). Two signs are read differently from the printed table,
+    which otherwise gives H_d < 0 for 0.46 < ε < 0.53 and a pole at ε = 0.9942: in 0.46 <= ε < 0.545,
+    a = 0.0320 + 0.7399/(1 + (ε/0.4912)^54.4265) (printed "-"; "+" joins the neighbouring ranges to within
+    3 % at ε = 0.46 and 0.545), and in 0.99 <= ε < 0.9997 the logistic factor is 0.8800/(1 + exp(-(ε -
+    0.9942)/0.00218)) (printed "1 - exp", which divides by zero at 0.9942).
+    """
+    e = min(max(eps, 0.4), 1.0)
+    if e < 0.46:
+        return 0.8526 - 0.5846 / (1.0 + (e / 0.4325) ** 22.6279)  # c = 0
+    if e < 0.545:
+        a = 0.0320 + 0.7399 / (1.0 + (e / 0.4912) ** 54.4265)
+        b = (
+            0.00225
+            + 0.02404 / (1.0 + 10.0 ** (53.8948 * (0.5257 - e)))
+            + 0.1731 / (1.0 + 10.0 ** (66.3224 * (e - 0.3987)))
+        )
+        c = 0.1705 - 0.1731 / (1.0 + (e / 0.5020) ** 37.7091)
+        return a * (re + b) ** c
+    if e < 0.99:
+        a = (2124.956 - 2142.3 * e) ** -0.4896
+        b = (0.8223 - 0.1293 * e) ** 13.0310
+        x = e - 1.0013
+        c = x / (-0.06633 + 9.1391 * x + 6.9231 * x * x)
+        return a * (re + b) ** c
+    if e < 0.9997:
+        a = 0.4243 + 0.8800 / (1.0 + math.exp(-(e - 0.9942) / 0.00218)) * (
+            1.0 - 1.0 / (1.0 + math.exp(-(e - 0.9989) / 0.00003))
+        )
+        b = 0.01661 + 0.2436 * math.exp(-0.5 * ((e - 0.9985) / 0.00191) ** 2)
+        c = 0.0825 - 0.0574 * math.exp(-0.5 * ((e - 0.9979) / 0.00703) ** 2)
+        return a * (re + b) ** c
+    return 1.0  # a = 1, c = 0
+
+
+@DRAG_LAWS.register("emms")
+@njit(cache=True)
+def emms(eps, slip, d, rho_g, mu_g):
+    """EMMS drag, seed 000 eqs 2-6 with Table 1: K = V_p β/(1 - ε) = π μ d C_d Re_p ε^-2.65 H_d / 8 (kg/s).
+
+    β = 3/4 ε (1 - ε) ρ_g |u - v| / d ε^-2.65 C_d H_d (eq 3), C_d = 24 (1 + 0.15 Re^0.687)/Re for Re <= 1000,
+    0.44 above (eq 4), Re_p = ε ρ_g |u - v| d / μ (eq 5), H_d from `emms_heterogeneity` (eq 6, Table 1).
+    """
+    re = eps * rho_g * slip * d / mu_g
+    cd_re = 24.0 * (1.0 + 0.15 * re**0.687) if re <= 1000.0 else 0.44 * re
+    return _k_from_cd_re(cd_re * eps**-2.65 * emms_heterogeneity(eps, re), d, mu_g)
+
+
+@njit(cache=True)
+def drag_kernel(law, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
+    """Per-particle exchange coefficient K (N,) (kg/s) and drag force F (N, 3) (N) for any drag law.
+
+    K_p = n_orig,p law(ε_@p, |u_@p - v_p|, d_orig,p, ρ_g, μ_g) and F_p = K_p (u_@p - v_p) (seed 001 eq 20);
+    eps (N,), gas velocity u (N, 3) and particle velocity v (N, 3) at the particles.
+    """
+    for p in range(eps.size):
+        s0 = u[p, 0] - v[p, 0]
+        s1 = u[p, 1] - v[p, 1]
+        s2 = u[p, 2] - v[p, 2]
+        slip = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        k = n_orig[p] * law(eps[p], slip, d_orig[p], rho_g, mu_g)
+        K[p] = k
+        F[p, 0] = k * s0
+        F[p, 1] = k * s1
+        F[p, 2] = k * s2
+
+
+@njit(cache=True)
+def pressure_gradient_kernel(volume, grad_p, F):
+    """Pressure-gradient force F_P = -V_p ∇p_@p (seed 001 eq 27): volume (N,) m^3, grad_p (N, g) Pa/m -> F (N, 3) N."""
+    g = grad_p.shape[1]
+    for p in range(volume.size):
+        for a in range(3):
+            F[p, a] = -volume[p] * grad_p[p, a] if a < g else 0.0
+
+
+def get_drag_law(name: str):
+    """The registered Numba drag law `name` (see module docstring); ValueError listing the valid names."""
+    try:
+        return DRAG_LAWS.get(name)
+    except KeyError as e:
+        raise ValueError(f"drag: {e.args[0]}") from None
+
+
+def drag_forces(law, eps, u, v, d_orig, n_orig, rho_g: float, mu_g: float, K=None, F=None):
+    """Drag coefficients K (N,) kg/s and forces F (N, 3) N of N particles; `law` is a name or a registered law.
+
+    eps (N,) void fraction at the particles, u (N, 3) gas velocity at the particles, v (N, 3) particle
+    velocity (m/s), d_orig (N,) original diameter (m), n_orig (N,) originals per particle.
+    """
+    if isinstance(law, str):
+        law = get_drag_law(law)
+    n = np.shape(eps)[0]
+    for name, a, shape in (("u", u, (n, 3)), ("v", v, (n, 3)), ("d_orig", d_orig, (n,)), ("n_orig", n_orig, (n,))):
+        if np.shape(a) != shape:
+            raise ValueError(f"{name}: must have shape {shape}, got {np.shape(a)}")
+    if not (rho_g > 0.0 and mu_g > 0.0):
+        raise ValueError(f"rho_g, mu_g: gas density and viscosity must be > 0, got {rho_g}, {mu_g}")
+    K = np.empty(n) if K is None else K
+    F = np.empty((n, 3)) if F is None else F
+    drag_kernel(law, eps, u, v, d_orig, n_orig, float(rho_g), float(mu_g), K, F)
+    return K, F
