@@ -103,6 +103,8 @@ class DEM:
         self._forces_valid = False
         self._fext = np.zeros((0, 3))
         self._dt = None
+        self._saved = None  # contact history keyed by gid pairs, carried over a change of rows
+        self._lists_valid = False  # pair and wall lists index the current rows
 
     # ------------------------------------------------------------------ construction from a case
     @classmethod
@@ -135,6 +137,7 @@ class DEM:
     # ------------------------------------------------------------------ particles
     def add_particles(self, pos, diameter, density, vel=None, omega=None, n_orig=1) -> np.ndarray:
         """Insert spheres (m, kg/m^3, m/s) and return their gids; the pair list is rebuilt on the next step."""
+        self.save_history()
         gids = self.particles.add(pos, diameter, density, vel=vel, omega=omega, n_orig=n_orig)
         self.touch()
         self._dt = None
@@ -142,6 +145,7 @@ class DEM:
 
     def remove_particles(self, which) -> None:
         """Remove particles by boolean mask or row indices; their contact history is dropped."""
+        self.save_history()
         self.particles.remove(which)
         self.touch()
         self._dt = None
@@ -174,12 +178,10 @@ class DEM:
         """Sort particles by linked cell (if enabled), rebuild the pair and wall lists, keep contact history."""
         P = self.particles
         n = P.n
-        saved = self.pairs.saved_history(P.gid[: self.pairs.n]) if self.pairs.n == n else None
-        wsaved = None
-        if self.wstart.size == n + 1 and n:
-            keys, vals = wall_keys(self.wstart, self.wid, P.gid, n, self.whist)
-            order = np.argsort(keys)
-            wsaved = (keys[order], vals[order])
+        if self._saved is None:
+            self.save_history()
+        saved, wsaved = self._saved if self._saved is not None else (None, None)
+        self._saved = None
         skin = self._skin()
         if self.params.sort and P.n_ghost == 0 and P.n_owned > 1:
             lo, size, dims = grid_of(P.pos, n, 2.0 * skin / self.params.skin)
@@ -196,6 +198,18 @@ class DEM:
             self.whist[:] = 0.0
         self.pos_ref = P.pos.copy()
         self._dirty = False
+        self._lists_valid = True
+
+    def save_history(self) -> None:
+        """Key the contact history by gid pairs now; call before changing particle rows from outside."""
+        P = self.particles
+        if self._saved is not None or not self._lists_valid or self.pairs.n != P.n:
+            return
+        saved = self.pairs.saved_history(P.gid)
+        keys, vals = wall_keys(self.wstart, self.wid, P.gid, P.n, self.whist)
+        order = np.argsort(keys)
+        self._saved = (saved, (keys[order], vals[order]))
+        self._lists_valid = False
 
     def _build_walls(self, skin: float) -> None:
         P = self.particles
