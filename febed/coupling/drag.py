@@ -103,7 +103,7 @@ def emms_heterogeneity(eps, re):
     ε is clamped into [0.4, 1] (DESIGN.md "Readings"). Two signs are read differently from the printed table,
     which otherwise gives H_d < 0 for 0.46 < ε < 0.53 and a pole at ε = 0.9942: in 0.46 <= ε < 0.545,
     a = 0.0320 + 0.7399/(1 + (ε/0.4912)^54.4265) (printed "-"; "+" joins the neighbouring ranges to within
-    3 % at ε = 0.46 and 0.545), and in 0.99 <= ε < 0.9997 the logistic factor is 0.8800/(1 + exp(-(ε -
+    4 % at ε = 0.46 and 0.545), and in 0.99 <= ε < 0.9997 the logistic factor is 0.8800/(1 + exp(-(ε -
     0.9942)/0.00218)) (printed "1 - exp", which divides by zero at 0.9942).
     """
     e = min(max(eps, 0.4), 1.0)
