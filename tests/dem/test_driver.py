@@ -67,7 +67,7 @@ def test_pure_dem_case_runs_and_writes_particles(tmp_path):
 def test_bed_file_packed_once_then_loaded(tmp_path):
     from febed.dem.driver import run
 
-    extra = 'bed_file = "bed.npz"\nsettle_energy = 1e-9'
+    extra = 'bed_file = "bed.npz"\nsettle_energy = 2e-8'
     text = CASE.format(out=tmp_path / "out", extra=extra).replace("0.01, 0.02, 0.02, 0.06]", "0.003, 0.02, 0.02, 0.02]")
     text = text.replace("stiffness = 1e5", "stiffness = 1e5\nrestitution_pp = 0.3\nrestitution_pw = 0.3")
     (tmp_path / "case.toml").write_text(text)
