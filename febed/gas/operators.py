@@ -83,14 +83,13 @@ class NodalOperators:
         """Geometric dimension."""
         return self.grad.shape[1]
 
-    def stiffness_rows(self, rows: np.ndarray, f: np.ndarray) -> np.ndarray:
-        """(L f)_i for the given owned rows, L the unmodified stiffness ∫ ∇φ_i·∇φ_j dx."""
+    def stiffness_rows(self, rows: np.ndarray):
+        """The rows `rows` (owned) of the unmodified stiffness ∫ ∇φ_i·∇φ_j dx as a scipy CSR (n_rows, n_local)."""
+        import scipy.sparse
+
         lap = self.tens[:, : self.gdim].sum(axis=1)
-        out = np.zeros(rows.size)
-        for n, i in enumerate(rows):
-            k0, k1 = self.indptr[i], self.indptr[i + 1]
-            out[n] = lap[k0:k1] @ f[self.indices[k0:k1]]
-        return out
+        full = scipy.sparse.csr_matrix((lap, self.indices, self.indptr), shape=(self.n_owned, self.n_local))
+        return full[np.asarray(rows, dtype=np.int64)]
 
 
 def build_operators(mesh) -> NodalOperators:
