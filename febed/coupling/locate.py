@@ -59,11 +59,13 @@ def _solve(gdim, J, r, out):
 
 
 @njit(cache=True)
-def reference_coords(kind, gdim, cell_dofs, x_dofs, c, x, ref, J, r, d):
+def reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, x, ref, J, r, d):
     """Reference coordinates `ref` (3,) of point x in cell c; returns (how far outside, exit reference facet).
 
     The first value is <= 0 inside (minus the distance to the nearest facet in reference units) and > 0
-    outside; the second is the reference facet the point is most outside of. J (3, 3), r, d (3,) are scratch.
+    outside; the second is the reference facet the point is most outside of. affine (nc,) flags
+    quadrilaterals/hexahedra whose map is affine (one linear solve instead of Newton). J (3, 3), r, d (3,)
+    are scratch.
     """
     dofs = cell_dofs[c]
     if kind == TRIANGLE or kind == TETRAHEDRON:
@@ -84,12 +86,23 @@ def reference_coords(kind, gdim, cell_dofs, x_dofs, c, x, ref, J, r, d):
                 worst = -ref[a]
                 facet = a + 1
         return worst, facet
-    # bilinear / trilinear map: Newton from the cell centre
     nv = 4 if kind == QUADRILATERAL else 8
-    for a in range(3):
-        ref[a] = 0.5 if a < gdim else 0.0
     converged = False
-    for _it in range(_NEWTON_ITERS):
+    if affine[c]:  # parallelogram / parallelepiped: x = x0 + Σ_b ξ_b (x_{2^b} - x0)
+        x0 = x_dofs[dofs[0]]
+        for a in range(gdim):
+            r[a] = x[a] - x0[a]
+            for b in range(gdim):
+                J[a, b] = x_dofs[dofs[1 << b], a] - x0[a]
+        if not _solve(gdim, J, r, ref):
+            return 1e300, 0
+        converged = True
+        nv = 0  # skip Newton
+    # bilinear / trilinear map: Newton from the cell centre
+    if nv > 0:
+        for a in range(3):
+            ref[a] = 0.5 if a < gdim else 0.0
+    for _it in range(_NEWTON_ITERS if nv > 0 else 0):
         for a in range(gdim):
             r[a] = -x[a]
             for b in range(gdim):
@@ -138,7 +151,7 @@ def reference_coords(kind, gdim, cell_dofs, x_dofs, c, x, ref, J, r, d):
 
 
 @njit(cache=True)
-def _grid_search(kind, gdim, cell_dofs, x_dofs, bbox, origin, h, n, start, cells, x, ref, J, r, d):
+def _grid_search(kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, start, cells, x, ref, J, r, d):
     """Cell of the grid bin of x whose reference coordinates put x inside, or -1."""
     b = 0
     for a in range(3):
@@ -155,7 +168,7 @@ def _grid_search(kind, gdim, cell_dofs, x_dofs, bbox, origin, h, n, start, cells
                 out = True
         if out:
             continue
-        worst, _f = reference_coords(kind, gdim, cell_dofs, x_dofs, c, x, ref, J, r, d)
+        worst, _f = reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, x, ref, J, r, d)
         if worst <= INSIDE_TOL:
             return c
     return -1
@@ -180,8 +193,8 @@ def _nearest_start(gdim, origin, h, n, start, cells, x):
 
 @njit(cache=True)
 def locate_kernel(
-    kind, gdim, cell_dofs, x_dofs, cell_nbr, cell_facets, bbox, origin, h, n, start, cells, x, cell, ref, status,
-    exit_facet, max_steps,
+    kind, gdim, cell_dofs, x_dofs, affine, cell_nbr, cell_facets, bbox, origin, h, n, start, cells, x, cell, ref,
+    status, exit_facet, max_steps,
 ):  # fmt: skip
     """Locate points x (N, 3) starting from `cell` (in/out, -1 = unknown); fill ref, status, exit_facet.
 
@@ -202,7 +215,9 @@ def locate_kernel(
         for attempt in range(2):
             if attempt == 1:
                 # fallback: the grid index; if that fails too, a walk from a nearby cell classifies the exit
-                found = _grid_search(kind, gdim, cell_dofs, x_dofs, bbox, origin, h, n, start, cells, xp, rp, J, r, d)
+                found = _grid_search(
+                    kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, start, cells, xp, rp, J, r, d
+                )
                 if found >= 0:
                     break
                 if last_c >= 0:
@@ -211,7 +226,7 @@ def locate_kernel(
             if c < 0 or c >= nc:
                 continue
             for _s in range(max_steps):
-                worst, f = reference_coords(kind, gdim, cell_dofs, x_dofs, c, xp, rp, J, r, d)
+                worst, f = reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, xp, rp, J, r, d)
                 if worst <= INSIDE_TOL:
                     found = c
                     break
@@ -266,14 +281,14 @@ def locate(
     status = np.zeros(n, dtype=np.int8) if status is None else status
     exit_facet = np.full(n, -1, dtype=np.int32) if exit_facet is None else exit_facet
     missing = locate_kernel(
-        ma.kind, ma.gdim, ma.cell_dofs, ma.x_dofs, ma.cell_nbr, ma.cell_facets, ma.bbox, ma.grid_origin, ma.grid_h,
-        ma.grid_n, ma.grid_start, ma.grid_cells, x, cell, ref, status, exit_facet, max_steps,
+        ma.kind, ma.gdim, ma.cell_dofs, ma.x_dofs, ma.cell_affine, ma.cell_nbr, ma.cell_facets, ma.bbox,
+        ma.grid_origin, ma.grid_h, ma.grid_n, ma.grid_start, ma.grid_cells, x, cell, ref, status, exit_facet, max_steps,
     )  # fmt: skip
     return cell, ref, status, exit_facet, int(missing)
 
 
 @njit(cache=True)
-def brute_force_kernel(kind, gdim, cell_dofs, x_dofs, x, cell, ref):
+def brute_force_kernel(kind, gdim, cell_dofs, x_dofs, affine, x, cell, ref):
     """Reference search: the first cell (in local order) holding each point, by testing every cell."""
     J = np.zeros((3, 3))
     r = np.zeros(3)
@@ -281,7 +296,7 @@ def brute_force_kernel(kind, gdim, cell_dofs, x_dofs, x, cell, ref):
     for p in range(x.shape[0]):
         cell[p] = -1
         for c in range(cell_dofs.shape[0]):
-            worst, _f = reference_coords(kind, gdim, cell_dofs, x_dofs, c, x[p], ref[p], J, r, d)
+            worst, _f = reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, x[p], ref[p], J, r, d)
             if worst <= INSIDE_TOL:
                 cell[p] = c
                 break
@@ -292,7 +307,7 @@ def locate_brute_force(ma: MeshArrays, x: np.ndarray):
     x = np.ascontiguousarray(x, dtype=np.float64)
     cell = np.full(x.shape[0], -1, dtype=np.int32)
     ref = np.zeros((x.shape[0], 3))
-    brute_force_kernel(ma.kind, ma.gdim, ma.cell_dofs, ma.x_dofs, x, cell, ref)
+    brute_force_kernel(ma.kind, ma.gdim, ma.cell_dofs, ma.x_dofs, ma.cell_affine, x, cell, ref)
     bad = cell < 0
     ref[bad] = 0.0
     return cell, ref

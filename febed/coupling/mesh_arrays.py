@@ -47,6 +47,7 @@ class MeshArrays:
         num_owned_cells: cells [0, num_owned_cells) are owned by this rank.
         x_dofs: (nd, 3) float64, dof coordinates (m), z = 0 in 2D.
         num_owned_dofs: dofs [0, num_owned_dofs) are owned by this rank.
+        cell_affine: (nc,) bool, quadrilateral/hexahedron whose map is affine (True for every simplex).
         cell_nbr: (nc, nf) int32, cell across reference facet k, or NBR_DOMAIN_BOUNDARY / NBR_PARTITION_BOUNDARY.
         cell_facets: (nc, nf) int32, local topology facet index of reference facet k (for facet tags).
         bbox: (nc, 2, 3) float64, min/max corners of each cell (m).
@@ -66,6 +67,7 @@ class MeshArrays:
     num_owned_cells: int
     x_dofs: np.ndarray
     num_owned_dofs: int
+    cell_affine: np.ndarray
     cell_nbr: np.ndarray
     cell_facets: np.ndarray
     bbox: np.ndarray
@@ -307,6 +309,13 @@ def extract_mesh_arrays(mesh, Q=None, depth: float = 1.0) -> MeshArrays:
     grid = _build_grid(bbox, gdim)
 
     vol, share = cell_geometry(kind, xc)
+    cell_affine = np.ones(nc, dtype=np.bool_)
+    if kind in (QUADRILATERAL, HEXAHEDRON):  # affine iff every vertex is x0 + Σ_b bit_b(k) (x_{2^b} - x0)
+        edges = xc[:, [1 << b for b in range(tdim)], :] - xc[:, :1, :]
+        bits = np.array([[(k >> b) & 1 for b in range(tdim)] for k in range(nv)], dtype=float)
+        pred = xc[:, :1, :] + np.einsum("kb,cbg->ckg", bits, edges)
+        size = np.abs(edges).max(axis=(1, 2))
+        cell_affine = np.abs(pred - xc).max(axis=(1, 2)) <= 1e-13 * size
     scale = depth if gdim == 2 else 1.0
     vol = vol * scale
     share = share * scale
@@ -320,6 +329,7 @@ def extract_mesh_arrays(mesh, Q=None, depth: float = 1.0) -> MeshArrays:
         num_owned_cells=nown,
         x_dofs=x_dofs,
         num_owned_dofs=dof_map.size_local,
+        cell_affine=cell_affine,
         cell_nbr=cell_nbr,
         cell_facets=cell_facets,
         bbox=bbox,

@@ -41,6 +41,20 @@ def _gmsh_mesh(dim: int):
     return m
 
 
+def _sheared(kind: str):
+    """Structured quads/hexes sheared into parallelograms/parallelepipeds (affine maps, not axis-aligned)."""
+    comm = MPI.COMM_WORLD
+    ct = getattr(mesh.CellType, kind)
+    if kind == "quadrilateral":
+        m = mesh.create_rectangle(comm, [np.array([0.0, 0.0]), np.array([0.09, 0.12])], [7, 10], ct)
+    else:
+        m = mesh.create_box(comm, [np.array([0.0, 0.0, 0.0]), np.array([0.08, 0.03, 0.1])], [5, 3, 6], ct)
+    x = m.geometry.x
+    x[:, 0] += 0.3 * x[:, 1] - 0.2 * x[:, 2]
+    x[:, 1] += 0.1 * x[:, 0]
+    return m
+
+
 def _distorted(kind: str):
     """Structured quads/hexes (non-affine after distortion) or simplices on a smoothly distorted box."""
     comm = MPI.COMM_WORLD
@@ -63,13 +77,15 @@ def _distorted(kind: str):
 @cache
 def mesh_and_arrays(name: str):
     """(dolfinx mesh, MeshArrays) for a named test mesh: 'tri-unstructured', 'tet-unstructured', 'quad', 'hex',
-    'tri-distorted', 'tet-distorted'. Cached per process (the same on every test of a session)."""
+    'tri-distorted', 'tet-distorted', 'quad-affine', 'hex-affine'. Cached per process."""
     if name == "tri-unstructured":
         m = _gmsh_mesh(2)
     elif name == "tet-unstructured":
         m = _gmsh_mesh(3)
     elif name in ("quad", "hex"):
         m = _distorted({"quad": "quadrilateral", "hex": "hexahedron"}[name])
+    elif name in ("quad-affine", "hex-affine"):
+        m = _sheared({"quad-affine": "quadrilateral", "hex-affine": "hexahedron"}[name])
     elif name in ("tri-distorted", "tet-distorted"):
         m = _distorted({"tri-distorted": "triangle", "tet-distorted": "tetrahedron"}[name])
     else:

@@ -21,7 +21,7 @@ def _located(name, n=600):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("name", ALL_MESHES + ("tri-distorted", "tet-distorted"))
+@pytest.mark.parametrize("name", ALL_MESHES + ("tri-distorted", "tet-distorted", "quad-affine", "hex-affine"))
 def test_linear_fields_exact(name):
     ma, pts, cell, ref = _located(name)
     g = ma.gdim

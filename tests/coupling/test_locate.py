@@ -10,7 +10,7 @@ from dolfinx import mesh as dmesh
 from febed.coupling.locate import FOUND, OUTSIDE_DOMAIN, OUTSIDE_LOCAL, locate, locate_brute_force
 from febed.coupling.weights import compute_weights
 
-MESHES = ALL_MESHES + ("tri-distorted", "tet-distorted")
+MESHES = ALL_MESHES + ("tri-distorted", "tet-distorted", "quad-affine", "hex-affine")
 
 
 def _map_back(ma, cell, w):
@@ -23,6 +23,7 @@ def test_locate_matches_brute_force(name):
     _, ma = mesh_and_arrays(name)
     if ma.parallel:
         pytest.skip("serial test (see test_locate_mpi_each_point_owned_once)")
+    assert np.all(ma.cell_affine) == (name not in ("quad", "hex"))  # both inverse maps are exercised
     pts = random_points(ma, 1500, seed=1, margin=0.004)
     cell, ref, status, exit_facet, missing = locate(ma, pts, np.full(len(pts), -1, np.int32))
     cb, rb = locate_brute_force(ma, pts)
