@@ -48,7 +48,7 @@ def compute_forces(
     force,
     torque,
 ):
-    """Set force (N) = m g + contact forces and torque (N m) = contact torques of rows [0, n); returns max overlap/d."""
+    """Set force (N) = m g + contact forces and torque (N m) = contact torques of rows [0, n); returns the max overlap (m)."""
     rot = 1.0 if rotation else 0.0
     for i in range(n):
         for a in range(3):
@@ -84,7 +84,7 @@ def compute_forces(
                 continue
             dist = math.sqrt(d2)
             delta = rs - dist  # seed 001 eq 10
-            worst = max(worst, delta / (2.0 * min(ri, rj)))
+            worst = max(worst, delta)
             inv = 1.0 / dist
             nx = dx * inv  # seed 001 eq 12: from i towards j
             ny = dy * inv
@@ -211,7 +211,7 @@ def compute_forces(
             ny = -ms[c, 1]
             nz = -ms[c, 2]
             delta = dl[c]
-            worst = max(worst, delta / (2.0 * ri))
+            worst = max(worst, delta)
             vx = vel[i, 0] + ri * (omega[i, 1] * nz - omega[i, 2] * ny)
             vy = vel[i, 1] + ri * (omega[i, 2] * nx - omega[i, 0] * nz)
             vz = vel[i, 2] + ri * (omega[i, 0] * ny - omega[i, 1] * nx)

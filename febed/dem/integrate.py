@@ -54,49 +54,92 @@ def _reach(n, dt, pos, pos_ref, vel, force, fext, mass, half_dt_accel):
 
 
 @njit(cache=True)
+def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp, wp,
+                  pos_ref, half_skin):  # fmt: skip
+    """Fused pass: v += kick a; x += dt v; predicted v^n+1 = v + dt/2 a; returns True if a particle moved too far."""
+    h = 0.5 * dt
+    hs2 = half_skin * half_skin
+    far = False
+    for i in range(n_owned):
+        im = 1.0 / mass[i]
+        ii = 1.0 / inertia[i] if rotation else 0.0
+        d2 = 0.0
+        for a in range(3):
+            acc = (force[i, a] + fext[i, a]) * im
+            v = vel[i, a] + kick * acc
+            if dim2 and a == 2:
+                v = 0.0
+            vel[i, a] = v
+            x = pos[i, a] + dt * v
+            pos[i, a] = x
+            vp[i, a] = v + h * acc
+            d = x - pos_ref[i, a]
+            d2 += d * d
+            w = omega[i, a] + kick * torque[i, a] * ii
+            if dim2 and a < 2:
+                w = 0.0
+            omega[i, a] = w
+            wp[i, a] = w + h * torque[i, a] * ii
+        if d2 > hs2:
+            far = True
+    return far
+
+
+@njit(cache=True)
 def verlet_steps(
     n_steps, dt, pos, vel, omega, force, torque, diameter, mass, inertia, n_owned, n, fext, pos_ref, half_skin,
-    start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2,
+    start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2, resume,
     vp, wp, x0, htmp, whtmp,
 ):  # fmt: skip
-    """Velocity Verlet for up to n_steps of dt (s); returns (steps, max overlap/d, rebuild?).
+    """Velocity Verlet for up to n_steps of dt (s); returns (steps completed, max overlap (m), code).
 
-    Kick-drift-force-kick; the velocity-dependent contact forces (damping, friction) are evaluated with the
-    predicted end-of-step velocities v^n + dt a^n (vp, wp), which keeps the scheme second order for damped
-    contacts (with the half-step velocities it is first order).
+    code 0: done; 2: a particle moved more than half the skin during the drift of the next step: rebuild the
+    lists and call again with resume=True (the drift is done, the force evaluation resumes).
+    The kick of one step and the kick + drift of the next are fused in one pass over the particles.
+    Velocity-dependent contact forces (damping, friction) use the predicted velocities v^n + dt a^n
+    (vp, wp), which keeps the damped impact second order away from the contact-start/end jumps.
     """
     worst = 0.0
+    h = 0.5 * dt
     for i in range(n_owned, n):  # ghosts: their velocities as given
         for a in range(3):
             vp[i, a] = vel[i, a]
             wp[i, a] = omega[i, a]
-    for s in range(n_steps):
-        _kick(n_owned, 0.5 * dt, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)
+    if resume:
         for i in range(n_owned):
-            sm = 0.5 * dt / mass[i]
-            si = 0.5 * dt / inertia[i] if rotation else 0.0
+            im = h / mass[i]
+            ii = h / inertia[i] if rotation else 0.0
             for a in range(3):
-                pos[i, a] += dt * vel[i, a]
-                vp[i, a] = vel[i, a] + sm * (force[i, a] + fext[i, a])
-                wp[i, a] = omega[i, a] + si * torque[i, a]
+                vp[i, a] = vel[i, a] + im * (force[i, a] + fext[i, a])
+                wp[i, a] = omega[i, a] + ii * torque[i, a]
+    elif _verlet_drift(n_owned, dt, h, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp, wp,
+                       pos_ref, half_skin):  # fmt: skip
+        return 0, worst, 2
+    for s in range(n_steps):
         w = compute_forces(
             pos, vp, wp, diameter, mass, inertia, n_owned, n, start, nbr, hist, hist, wstart, wid, whist, whist,
             plane_p, plane_n, facets, nv, pp, pw, dt, dt, rotation, gvec, force, torque,
         )  # fmt: skip
         worst = max(worst, w)
-        _kick(n_owned, 0.5 * dt, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)
-        if _reach(n_owned, dt, pos, pos_ref, vel, force, fext, mass, 0.5 * dt) > half_skin:
-            return s + 1, worst, True
-    return n_steps, worst, False
+        if s + 1 == n_steps:
+            _kick(n_owned, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)
+        elif _verlet_drift(n_owned, dt, dt, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp,
+                           wp, pos_ref, half_skin):  # fmt: skip
+            return s + 1, worst, 2
+    return n_steps, worst, 0
 
 
 @njit(cache=True)
 def rk2_steps(
     n_steps, dt, pos, vel, omega, force, torque, diameter, mass, inertia, n_owned, n, fext, pos_ref, half_skin,
-    start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2,
+    start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2, resume,
     x0, v0, w0, htmp, whtmp,
 ):  # fmt: skip
-    """RK2 of seed 001 eqs 40-41 for up to n_steps of dt (s); returns (steps, max overlap/d, rebuild?)."""
+    """RK2 of seed 001 eqs 40-41 for up to n_steps of dt (s); returns (steps, max overlap (m), code).
+
+    code 0: done; 1: rebuild the lists before the next step (displacement since the build plus dt |v| exceeds
+    half the skin).
+    """
     worst = 0.0
     h = 0.5 * dt
     for s in range(n_steps):
@@ -124,8 +167,8 @@ def rk2_steps(
                 omega[i, a] = w0[i, a]
         _kick(n_owned, dt, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)  # seed 001 eq 41
         if _reach(n_owned, dt, pos, pos_ref, vel, force, fext, mass, 0.0) > half_skin:
-            return s + 1, worst, True
-    return n_steps, worst, False
+            return s + 1, worst, 1
+    return n_steps, worst, 0
 
 
 class Integrator:

@@ -230,7 +230,7 @@ class DEM:
     # ------------------------------------------------------------------ stepping
 
     def compute_forces(self, dt_eval: float = 0.0, dt_store: float = 0.0) -> float:
-        """Evaluate force and torque of every particle now (history not advanced); returns max overlap / d."""
+        """Evaluate force and torque of every particle now (history not advanced); returns the max overlap (m)."""
         if self._dirty:
             self.rebuild()
         P = self.particles
@@ -270,17 +270,20 @@ class DEM:
         if self.integrator.needs_initial_forces and not self._forces_valid:
             self.compute_forces()
         done = 0
+        resume = False
+        dmin = float(P.diameter[: P.n_owned].min())
         while done < n_steps:
-            k, worst, rebuild = self._run(n_steps - done, dt)
+            k, worst, code = self._run(n_steps - done, dt, resume)
             done += k
-            self.max_overlap = max(self.max_overlap, worst)
-            if rebuild:
+            self.max_overlap = max(self.max_overlap, worst / dmin)
+            if code:
                 self.rebuild()
+            resume = code == 2
         self._forces_valid = True
         self.time += n_steps * dt
         self.steps += n_steps
 
-    def _run(self, n_steps: int, dt: float):
+    def _run(self, n_steps: int, dt: float, resume: bool):
         P = self.particles
         W = self.walls
         pl = self.pairs
@@ -288,7 +291,7 @@ class DEM:
         args = (
             n_steps, dt, P.pos, P.vel, P.omega, P.force, P.torque, P.diameter, P.mass, P.inertia, P.n_owned, P.n,
             self._fext, self.pos_ref, 0.5 * pl.skin, pl.start, pl.nbr, pl.hist, self.wstart, self.wid, self.whist,
-            W.plane_p, W.plane_n, W.facets, W.nv, self.pp, self.pw, p.rotation, self.gvec, p.dim == 2,
+            W.plane_p, W.plane_n, W.facets, W.nv, self.pp, self.pw, p.rotation, self.gvec, p.dim == 2, resume,
         )  # fmt: skip
         s = self._scratch(P.n, pl.hist.shape[0], self.whist.shape[0])
         return self.integrator.steps(*args, *s)
