@@ -48,7 +48,7 @@ def compute_forces(
     force,
     torque,
 ):
-    """Set force (N) = m g + contact forces and torque (N m) = contact torques of rows [0, n); returns the max overlap (m)."""
+    """Set force (N) = m g + contact forces, torque (N m) = contact torques of rows [0, n); returns max overlap (m)."""
     rot = 1.0 if rotation else 0.0
     for i in range(n):
         for a in range(3):
