@@ -45,7 +45,7 @@ def bed_eps(x, t=0.0):
     return np.minimum(eps, 1.0)
 
 
-def main(warmup=100, steps=20, mass_tolerance=1e-7):
+def main(warmup=100, steps=20, mass_tolerance=1e-6):
     path = None
     if comm.rank == 0:
         path = os.path.join(tempfile.gettempdir(), "febed-bench-pseudo2d-intermediate.msh")
@@ -73,6 +73,7 @@ def main(warmup=100, steps=20, mass_tolerance=1e-7):
         if k == warmup:
             comm.barrier()
             t_start = time.perf_counter()
+            c_start = time.process_time()
             acc = {}
         dt = s.compute_dt()
         e = bed_eps(s.x, s.t + dt)
@@ -82,11 +83,13 @@ def main(warmup=100, steps=20, mass_tolerance=1e-7):
                 acc[name] = acc.get(name, 0.0) + v
     comm.barrier()
     total = comm.allreduce(time.perf_counter() - t_start, op=MPI.MAX) / steps
+    cpu = comm.allreduce(time.process_time() - c_start, op=MPI.MAX) / steps
     nodes = comm.allreduce(s.n_owned)
     if comm.rank == 0:
         print(machine())
         print(f"pseudo2d intermediate: {nodes} nodes, {comm.size} rank(s), setup {setup:.1f} s")
-        print(f"gas step: {1e3 * total:.1f} ms/step (incl. compute_dt; mean of {steps} steps after {warmup})")
+        print(f"gas step: {1e3 * total:.1f} ms/step wall, {1e3 * cpu:.1f} ms CPU ({steps} steps after {warmup})")
+        print(f"  load average {os.getloadavg()[0]:.2f} (other jobs on the machine inflate wall times)")
         for name, v in acc.items():
             print(f"  {name:12s} {1e3 * v / steps:7.2f} ms")
         other = total - sum(acc.values()) / steps
@@ -103,6 +106,6 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--warmup", type=int, default=100, help="steps before timing (the flow develops from rest)")
     ap.add_argument("--steps", type=int, default=20, help="timed steps")
-    ap.add_argument("--mass-tolerance", type=float, default=1e-7, help="VANSParameters.mass_tolerance")
+    ap.add_argument("--mass-tolerance", type=float, default=1e-6, help="VANSParameters.mass_tolerance")
     a = ap.parse_args()
     main(a.warmup, a.steps, a.mass_tolerance)

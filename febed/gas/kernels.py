@@ -156,15 +156,51 @@ def strain_rate_norm(indptr, indices, grad, u, mass, out):  # pragma: no cover
 
 
 @njit(cache=True)
-def predictor_update(q, rhs, mass, eps_new, K, Kv, f, rho, dt, out):  # pragma: no cover
+def predictor_update(q, rhs, mass, eps_new, K, Kv, f, g, rho, dt, out):  # pragma: no cover
     """Lumped predictor with implicit diagonal momentum exchange, per owned node [m/s].
 
     seed 001 eq 36 with −K_i(u_i − v̄_i) implicit: (ρ/Δt + K_i/ε_i^{n+1}) q*_i =
-    ρ q_i^n/Δt + rhs_i/ΔV_i + K_i v̄_i + f_i, where K_i v̄_i is given as `Kv` and f_i is a force density.
+    ρ q_i^n/Δt + rhs_i/ΔV_i + K_i v̄_i + f_i + ε_i^{n+1} ρ g, where K_i v̄_i is given as `Kv` and f_i is a
+    force density.
     """
     n = out.shape[0]
     gdim = out.shape[1]
     for i in range(n):
         a = rho / dt + K[i] / eps_new[i]
         for c in range(gdim):
-            out[i, c] = (rho * q[i, c] / dt + rhs[i, c] / mass[i] + Kv[i, c] + f[i, c]) / a
+            out[i, c] = (rho * q[i, c] / dt + rhs[i, c] / mass[i] + Kv[i, c] + f[i, c] + eps_new[i] * rho * g[c]) / a
+
+
+@njit(cache=True)
+def pressure_rhs(div, mass, eps, eps_old, dt, out):  # pragma: no cover
+    """Poisson right-hand side b_i = −(D q*_i + ΔV_i (ε_i^{n+1} − ε_i^n)/Δt) (seed 001 eq 39); returns Σ storage."""
+    total = 0.0
+    for i in range(out.size):
+        s = mass[i] * (eps[i] - eps_old[i]) / dt
+        out[i] = -(div[i] + s)
+        total += s
+    return total
+
+
+@njit(cache=True)
+def correct(q_star, g_phi, mass, rho_dt, gp, q, grad_p):  # pragma: no cover
+    """Correction (seed 001 eq 37) on owned rows: q = q* − G φ/ΔV; G p += ρ/Δt G φ; ∇p = G p/ΔV."""
+    for i in range(g_phi.shape[0]):
+        for d in range(g_phi.shape[1]):
+            gp[i, d] += rho_dt * g_phi[i, d]
+            q[i, d] = q_star[i, d] - g_phi[i, d] / mass[i]
+            grad_p[i, d] = gp[i, d] / mass[i]
+
+
+@njit(cache=True)
+def max_rate(u, width, n):  # pragma: no cover
+    """max_i |u_i| / Δ_i over the first n nodes [1/s]."""
+    m = 0.0
+    for i in range(n):
+        s = 0.0
+        for d in range(u.shape[1]):
+            s += u[i, d] * u[i, d]
+        r = np.sqrt(s) / width[i]
+        if r > m:
+            m = r
+    return m
