@@ -21,6 +21,8 @@ from numba import njit
 def momentum_rhs(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, out):
     """Explicit momentum right-hand side per node [N]: −ρ∇·(q⊗u) − ∇p + ∇·(ν∇u) + Taylor-Galerkin term.
 
+    The convection is in skew-symmetric group form (see the comment above `_rhs3`).
+
     Args:
         indptr: CSR row pointers (owned nodes).
         indices: local column indices (owned + ghost nodes).
@@ -38,8 +40,10 @@ def momentum_rhs(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, 
     kernel(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, out)
 
 
-# seed 001 eq 36, explicit part: the convection −ρ∇·(q⊗u) in conservative nodal-product (group) form
-# Σ_j grad_ij·u_j q_j; the viscous stress ∇·(ε μ_eff ∇u) and the Taylor-Galerkin (Lax-Wendroff)
+# seed 001 eq 36, explicit part: the convection −ρ∇·(q⊗u) in skew-symmetric nodal-product (group) form
+# ½ Σ_j (grad_ij·u_j + grad_ij·u_i) q_j + ½ q_i Σ_j grad_ij·u_j  (= ½∇·(q⊗u) + ½u·∇q + ½q∇·u, consistent
+# with ∇·(q⊗u) for any ∇·u, and energy-neutral for divergence-free u); the viscous stress ∇·(ε μ_eff ∇u)
+# and the Taylor-Galerkin (Lax-Wendroff)
 # streamline term ρ Δt/2 ∇·(ū ū·∇q), which cancels the anti-diffusion of the forward-Euler convection
 # step, both in edge form with edge-averaged coefficients. Written out per dimension (scalar accumulators
 # are ~5x faster in Numba than small-array loops).
@@ -53,10 +57,13 @@ def _rhs3(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragm
         ui0, ui1, ui2 = u[i, 0], u[i, 1], u[i, 2]
         qi0, qi1, qi2 = q[i, 0], q[i, 1], q[i, 2]
         nui = nu[i]
+        dv = 0.0
         for k in range(indptr[i], indptr[i + 1]):
             j = indices[k]
             uj0, uj1, uj2 = u[j, 0], u[j, 1], u[j, 2]
-            s = rho * (grad[k, 0] * uj0 + grad[k, 1] * uj1 + grad[k, 2] * uj2)
+            sc = grad[k, 0] * uj0 + grad[k, 1] * uj1 + grad[k, 2] * uj2
+            dv += sc
+            s = 0.5 * rho * (sc + grad[k, 0] * ui0 + grad[k, 1] * ui1 + grad[k, 2] * ui2)
             t0, t1, t2 = tens[k, 0], tens[k, 1], tens[k, 2]
             c = (t0 + t1 + t2) * 0.5 * (nui + nu[j])
             b0 = 0.5 * (ui0 + uj0)
@@ -68,9 +75,10 @@ def _rhs3(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragm
             a0 -= s * qj0 + c * (uj0 - ui0) + w * (qj0 - qi0)
             a1 -= s * qj1 + c * (uj1 - ui1) + w * (qj1 - qi1)
             a2 -= s * qj2 + c * (uj2 - ui2) + w * (qj2 - qi2)
-        out[i, 0] = a0 - gradp[i, 0]
-        out[i, 1] = a1 - gradp[i, 1]
-        out[i, 2] = a2 - gradp[i, 2]
+        dv *= 0.5 * rho
+        out[i, 0] = a0 - dv * qi0 - gradp[i, 0]
+        out[i, 1] = a1 - dv * qi1 - gradp[i, 1]
+        out[i, 2] = a2 - dv * qi2 - gradp[i, 2]
 
 
 @njit(cache=True)
@@ -82,10 +90,13 @@ def _rhs2(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragm
         ui0, ui1 = u[i, 0], u[i, 1]
         qi0, qi1 = q[i, 0], q[i, 1]
         nui = nu[i]
+        dv = 0.0
         for k in range(indptr[i], indptr[i + 1]):
             j = indices[k]
             uj0, uj1 = u[j, 0], u[j, 1]
-            s = rho * (grad[k, 0] * uj0 + grad[k, 1] * uj1)
+            sc = grad[k, 0] * uj0 + grad[k, 1] * uj1
+            dv += sc
+            s = 0.5 * rho * (sc + grad[k, 0] * ui0 + grad[k, 1] * ui1)
             t0, t1 = tens[k, 0], tens[k, 1]
             c = (t0 + t1) * 0.5 * (nui + nu[j])
             b0 = 0.5 * (ui0 + uj0)
@@ -94,8 +105,9 @@ def _rhs2(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragm
             qj0, qj1 = q[j, 0], q[j, 1]
             a0 -= s * qj0 + c * (uj0 - ui0) + w * (qj0 - qi0)
             a1 -= s * qj1 + c * (uj1 - ui1) + w * (qj1 - qi1)
-        out[i, 0] = a0 - gradp[i, 0]
-        out[i, 1] = a1 - gradp[i, 1]
+        dv *= 0.5 * rho
+        out[i, 0] = a0 - dv * qi0 - gradp[i, 0]
+        out[i, 1] = a1 - dv * qi1 - gradp[i, 1]
 
 
 @njit(cache=True)

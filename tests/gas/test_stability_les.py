@@ -1,0 +1,61 @@
+"""Convective stability of the explicit predictor at high Reynolds number, and the Smagorinsky viscosity."""
+
+from mpi4py import MPI
+
+import dolfinx
+import numpy as np
+import pytest
+from _gas_cases import tagged_mesh
+
+from febed.gas import BoundarySpec, VANSParameters, VANSSolver
+
+A = np.pi / 2
+
+
+def box_solver(n, **kw):
+    mesh = dolfinx.mesh.create_rectangle(
+        MPI.COMM_WORLD, [[-A, -A], [A, A]], [n, n], dolfinx.mesh.CellType.quadrilateral
+    )
+    md = tagged_mesh(mesh, {"walls": lambda x: np.full(x.shape[1], True)})
+    par = VANSParameters(density=1.0, dt_max=1.0, boundaries={"walls": BoundarySpec("wall", slip=True)}, **kw)
+    return VANSSolver(md, par)
+
+
+def kinetic_energy(s):
+    n = s.n_owned
+    return MPI.COMM_WORLD.allreduce(float(np.sum(s.node_volume[:n] * np.sum(s.u[:n] ** 2, axis=1))))
+
+
+def test_nearly_inviscid_vortex_loses_energy():
+    s = box_solver(24, viscosity=1e-6)
+    x = s.x
+    s.q[:] = np.stack(
+        [-np.cos(x[:, 0]) * np.sin(x[:, 1]) + 0.3 * np.sin(3 * x[:, 1] + 1), np.sin(x[:, 0]) * np.cos(x[:, 1])], axis=1
+    )
+    s.q[:, 1] += 0.3 * np.cos(2 * x[:, 0])
+    s.set_void_fraction(1.0)
+    energy = [kinetic_energy(s)]
+    for k in range(2000):
+        info = s.step(s.compute_dt())
+        if k % 100 == 99:
+            energy.append(kinetic_energy(s))
+    assert info.cfl == pytest.approx(0.2, rel=0.05)
+    assert np.all(np.diff(energy) <= 1e-12 * energy[0])  # never gains energy
+    assert energy[-1] > 0.3 * energy[0]  # and is not over-damped
+
+
+@pytest.mark.parametrize("les", ["none", "smagorinsky"])
+def test_smagorinsky_viscosity_in_shear(les):
+    s = box_solver(16, viscosity=1e-3, les=les, smagorinsky_cs=0.17)
+    gamma = 2.0
+    s.q[:] = 0.0
+    s.q[:, 0] = gamma * s.x[:, 1]
+    s.set_void_fraction(1.0)
+    mu = s.effective_viscosity()
+    h = np.pi / 16
+    inner = np.all(np.abs(s.x[:, :2]) < A - 1.5 * h, axis=1)[: s.n_owned]
+    expected = 1e-3 + (les == "smagorinsky") * (0.17 * h) ** 2 * gamma  # ρ (C_s Δ)^2 |S|, |S| = γ
+    assert np.allclose(mu[: s.n_owned][inner], expected, rtol=1e-10)
+    dt = s.compute_dt()
+    mu_max = MPI.COMM_WORLD.allreduce(float(mu[: s.n_owned].max()), op=MPI.MAX)
+    assert dt == pytest.approx(min(0.2 * h / (gamma * A), 0.15 * h**2 / mu_max), rel=1e-6)
