@@ -37,23 +37,6 @@ def _kick(n, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2):
 
 
 @njit(cache=True)
-def _reach(n, dt, pos, pos_ref, vel, force, fext, mass, half_dt_accel):
-    """Largest |x - x_ref| + dt |v + dt/2 a| (m): displacement since the build plus the next step's."""
-    worst = 0.0
-    for i in range(n):
-        d2 = 0.0
-        v2 = 0.0
-        s = half_dt_accel / mass[i]
-        for a in range(3):
-            d = pos[i, a] - pos_ref[i, a]
-            d2 += d * d
-            v = vel[i, a] + s * (force[i, a] + fext[i, a])
-            v2 += v * v
-        worst = max(worst, math.sqrt(d2) + dt * math.sqrt(v2))
-    return worst
-
-
-@njit(cache=True)
 def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp, wp,
                   pos_ref, half_skin):  # fmt: skip
     """Fused pass: v += kick a; x += dt v; predicted v^n+1 = v + dt/2 a; returns True if a particle moved too far."""
@@ -148,27 +131,63 @@ def rk2_steps(
             pos, vel, omega, diameter, mass, inertia, n_owned, n, start, nbr, hist, htmp, wstart, wid, whist, whtmp,
             plane_p, plane_n, facets, nv, pp, pw, 0.0, h, rotation, gvec, force, torque,
         )  # fmt: skip
-        for i in range(n_owned):
-            for a in range(3):
-                x0[i, a] = pos[i, a]
-                v0[i, a] = vel[i, a]
-                w0[i, a] = omega[i, a]
-                pos[i, a] += h * vel[i, a]  # seed 001 eq 40
-        _kick(n_owned, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)  # seed 001 eq 40
+        _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0)
         w = compute_forces(
             pos, vel, omega, diameter, mass, inertia, n_owned, n, start, nbr, hist, hist, wstart, wid, whist, whist,
             plane_p, plane_n, facets, nv, pp, pw, h, dt, rotation, gvec, force, torque,
         )  # fmt: skip
         worst = max(worst, w)
-        for i in range(n_owned):
-            for a in range(3):
-                pos[i, a] = x0[i, a] + dt * vel[i, a]  # seed 001 eq 41
-                vel[i, a] = v0[i, a]
-                omega[i, a] = w0[i, a]
-        _kick(n_owned, dt, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)  # seed 001 eq 41
-        if _reach(n_owned, dt, pos, pos_ref, vel, force, fext, mass, 0.0) > half_skin:
+        far = _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0,
+                        pos_ref)  # fmt: skip
+        if far > half_skin:
             return s + 1, worst, 1
     return n_steps, worst, 0
+
+
+@njit(cache=True)
+def _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0):
+    """Save the state and take the half step of seed 001 eq 40."""
+    for i in range(n_owned):
+        im = h / mass[i]
+        ii = h / inertia[i] if rotation else 0.0
+        for a in range(3):
+            x0[i, a] = pos[i, a]
+            v0[i, a] = vel[i, a]
+            w0[i, a] = omega[i, a]
+            pos[i, a] += h * vel[i, a]  # seed 001 eq 40
+            vel[i, a] += im * (force[i, a] + fext[i, a])
+            omega[i, a] += ii * torque[i, a]
+        if dim2:
+            vel[i, 2] = 0.0
+            omega[i, 0] = 0.0
+            omega[i, 1] = 0.0
+
+
+@njit(cache=True)
+def _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0, pos_ref):
+    """Full step of seed 001 eq 41 from the saved state; returns max |x - x_ref| + dt |v| (m)."""
+    worst = 0.0
+    for i in range(n_owned):
+        im = dt / mass[i]
+        ii = dt / inertia[i] if rotation else 0.0
+        d2 = 0.0
+        v2 = 0.0
+        for a in range(3):
+            x = x0[i, a] + dt * vel[i, a]  # seed 001 eq 41
+            v = v0[i, a] + im * (force[i, a] + fext[i, a])
+            if dim2 and a == 2:
+                v = 0.0
+            w = w0[i, a] + ii * torque[i, a]
+            if dim2 and a < 2:
+                w = 0.0
+            pos[i, a] = x
+            vel[i, a] = v
+            omega[i, a] = w
+            d = x - pos_ref[i, a]
+            d2 += d * d
+            v2 += v * v
+        worst = max(worst, math.sqrt(d2) + dt * math.sqrt(v2))
+    return worst
 
 
 class Integrator:
