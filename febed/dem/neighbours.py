@@ -222,6 +222,10 @@ class PairList:
         """Rebuild for pos (n, 3), radius (n,) and restore the history `saved` by `saved_history`."""
         n = pos.shape[0]
         self.start = np.zeros(n + 1, dtype=np.int64)
+        if n == 0:
+            self.n = 0
+            self.builds += 1
+            return
         need = build_pairs(pos, radius, n, self.skin, self.start, self.nbr)
         if need > self.nbr.size:
             cap = int(need * 1.25) + 16

@@ -183,7 +183,7 @@ class DEM:
         saved, wsaved = self._saved if self._saved is not None else (None, None)
         self._saved = None
         skin = self._skin()
-        if self.params.sort and P.n_ghost == 0 and P.n_owned > 1:
+        if self.params.sort and P.n_ghost == 0 and P.n_owned > 1 and np.all(np.isfinite(P.pos)):
             lo, size, dims = grid_of(P.pos, n, 2.0 * skin / self.params.skin)
             perm = np.argsort(cell_index(P.pos, n, lo, size, dims), kind="stable")
             P.reorder(perm)
