@@ -125,12 +125,51 @@ def build_pairs(pos, radius, n, skin, start, nbr):
 
 @njit(cache=True)
 def sort_partners(start, nbr, n):
-    """Sort each particle's partner list ascending (canonical order; helps locality)."""
+    """Sort each particle's partner list ascending in place (canonical order; helps locality)."""
     for i in range(n):
-        a = start[i]
-        b = start[i + 1]
-        if b - a > 1:
-            nbr[a:b] = np.sort(nbr[a:b])
+        for k in range(start[i] + 1, start[i + 1]):  # insertion sort: lists are short
+            v = nbr[k]
+            q = k - 1
+            while q >= start[i] and nbr[q] > v:
+                nbr[q + 1] = nbr[q]
+                q -= 1
+            nbr[q + 1] = v
+
+
+@njit(cache=True)
+def carry_history(old_start, old_nbr, old_hist, start, nbr, hist, n):
+    """Copy the history of pairs present in both lists over the same rows (sorted partners: a merge)."""
+    for i in range(n):
+        q = old_start[i]
+        qe = old_start[i + 1]
+        for k in range(start[i], start[i + 1]):
+            j = nbr[k]
+            while q < qe and old_nbr[q] < j:
+                q += 1
+            if q < qe and old_nbr[q] == j:
+                hist[k, 0] = old_hist[q, 0]
+                hist[k, 1] = old_hist[q, 1]
+                hist[k, 2] = old_hist[q, 2]
+            else:
+                hist[k, 0] = 0.0
+                hist[k, 1] = 0.0
+                hist[k, 2] = 0.0
+
+
+@njit(cache=True)
+def carry_wall_history(old_start, old_wid, old_hist, start, wid, hist, n):
+    """Copy the particle-wall history of candidates present in both lists over the same rows."""
+    for i in range(n):
+        for k in range(start[i], start[i + 1]):
+            hist[k, 0] = 0.0
+            hist[k, 1] = 0.0
+            hist[k, 2] = 0.0
+            for q in range(old_start[i], old_start[i + 1]):
+                if old_wid[q] == wid[k]:
+                    hist[k, 0] = old_hist[q, 0]
+                    hist[k, 1] = old_hist[q, 1]
+                    hist[k, 2] = old_hist[q, 2]
+                    break
 
 
 def brute_force_pairs(pos: np.ndarray, radius: np.ndarray, skin: float) -> set[tuple[int, int]]:
@@ -201,6 +240,7 @@ class PairList:
         self.start = np.zeros(1, dtype=np.int64)
         self.nbr = np.zeros(max(1, capacity), dtype=np.int64)
         self.hist = np.zeros((max(1, capacity), 3))
+        self._spare = (np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros((1, 3)))
         self.n = 0
         self.builds = 0
         self.reallocations = 0
@@ -218,29 +258,40 @@ class PairList:
         order = np.argsort(keys)
         return keys[order], vals[order]
 
-    def build(self, pos: np.ndarray, radius: np.ndarray, gid: np.ndarray, saved=None) -> None:
-        """Rebuild for pos (n, 3), radius (n,) and restore the history `saved` by `saved_history`."""
+    def build(self, pos: np.ndarray, radius: np.ndarray, gid: np.ndarray, saved=None, same_rows: bool = False):
+        """Rebuild for pos (n, 3), radius (n,) and carry the pair history over.
+
+        same_rows: the rows are those of the previous build (no reorder, insertion or removal): the history is
+        merged row by row. Otherwise it is restored from `saved` (from `saved_history`, taken before the rows
+        changed), or zeroed.
+        """
         n = pos.shape[0]
-        self.start = np.zeros(n + 1, dtype=np.int64)
+        carry = same_rows and n == self.n and n > 0
+        old = (self.start, self.nbr, self.hist)
+        start, nbr, hist = self._spare if carry else old
+        if start.size != n + 1:
+            start = np.zeros(n + 1, dtype=np.int64)
         if n == 0:
-            self.n = 0
+            self.start, self.n = start, 0
             self.builds += 1
             return
-        need = build_pairs(pos, radius, n, self.skin, self.start, self.nbr)
-        if need > self.nbr.size:
-            cap = int(need * 1.25) + 16
-            self.nbr = np.zeros(cap, dtype=np.int64)
-            self.hist = np.zeros((cap, 3))
+        need = build_pairs(pos, radius, n, self.skin, start, nbr)
+        if need > nbr.size:
+            nbr = np.zeros(int(need * 1.25) + 16, dtype=np.int64)
             self.reallocations += 1
-            need = build_pairs(pos, radius, n, self.skin, self.start, self.nbr)
-        if self.hist.shape[0] < self.nbr.size:
-            self.hist = np.zeros((self.nbr.size, 3))
-        self.n = n
-        sort_partners(self.start, self.nbr, n)
-        if saved is None or saved[0].size == 0:
-            self.hist[:need] = 0.0
+            need = build_pairs(pos, radius, n, self.skin, start, nbr)
+        if hist.shape[0] < nbr.size:
+            hist = np.zeros((nbr.size, 3))
+        sort_partners(start, nbr, n)
+        if carry:
+            carry_history(old[0], old[1], old[2], start, nbr, hist, n)
+            self._spare = old
+        elif saved is None or saved[0].size == 0:
+            hist[:need] = 0.0
         else:
-            restore_history(self.start, self.nbr, gid, n, saved[0], saved[1], self.hist)
+            restore_history(start, nbr, gid, n, saved[0], saved[1], hist)
+        self.start, self.nbr, self.hist = start, nbr, hist
+        self.n = n
         self.builds += 1
 
     def pairs(self) -> set[tuple[int, int]]:

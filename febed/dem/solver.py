@@ -17,6 +17,7 @@ from febed.dem.forces import compute_forces
 from febed.dem.integrate import critical_time, get_integrator
 from febed.dem.neighbours import (
     PairList,
+    carry_wall_history,
     cell_index,
     grid_of,
     restore_wall_history,
@@ -42,7 +43,8 @@ class DEMParams:
         skin: pair-list skin as a fraction of the largest diameter.
         gravity: magnitude (m/s^2), along -z (3D) or -y (2D).
         rotation: integrate angular velocities.
-        sort: reorder particles by linked cell at every pair-list rebuild.
+        sort: reorder particles by linked cell (memory locality) ...
+        sort_every: ... at every sort_every-th pair-list rebuild (and whenever rows change anyway).
     """
 
     dim: int = 3
@@ -60,6 +62,7 @@ class DEMParams:
     gravity: float = 9.81
     rotation: bool = True
     sort: bool = True
+    sort_every: int = 20
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter out of range."""
@@ -105,6 +108,8 @@ class DEM:
         self._dt = None
         self._saved = None  # contact history keyed by gid pairs, carried over a change of rows
         self._lists_valid = False  # pair and wall lists index the current rows
+        self._since_sort = 0
+        self.pos_ref = np.zeros((0, 3))
 
     # ------------------------------------------------------------------ construction from a case
     @classmethod
@@ -175,28 +180,46 @@ class DEM:
         return self.params.skin * float(P.diameter.max()) if P.n else 1e-12
 
     def rebuild(self) -> None:
-        """Sort particles by linked cell (if enabled), rebuild the pair and wall lists, keep contact history."""
+        """Rebuild the pair and wall lists, keeping the contact history.
+
+        Every `sort_every` builds (or when rows changed anyway) the particles are first sorted by linked cell
+        for memory locality; otherwise the history is merged row by row (no key search).
+        """
         P = self.particles
         n = P.n
-        if self._saved is None:
+        p = self.params
+        sort = p.sort and P.n_ghost == 0 and P.n_owned > 1 and np.all(np.isfinite(P.pos))
+        sort = sort and (self._since_sort + 1 >= p.sort_every or not self._lists_valid)
+        same_rows = self._lists_valid and self._saved is None and not sort and self.pairs.n == n
+        saved = wsaved = None
+        if not same_rows:
             self.save_history()
-        saved, wsaved = self._saved if self._saved is not None else (None, None)
+            saved, wsaved = self._saved if self._saved is not None else (None, None)
         self._saved = None
         skin = self._skin()
-        if self.params.sort and P.n_ghost == 0 and P.n_owned > 1 and np.all(np.isfinite(P.pos)):
-            lo, size, dims = grid_of(P.pos, n, 2.0 * skin / self.params.skin)
+        if sort:
+            lo, size, dims = grid_of(P.pos, n, 2.0 * skin / p.skin)
             perm = np.argsort(cell_index(P.pos, n, lo, size, dims), kind="stable")
             P.reorder(perm)
             if self._fext.shape[0] == n:
                 self._fext[:] = self._fext[perm]
+            self._since_sort = 0
+        else:
+            self._since_sort += 1
         self.pairs.skin = skin
-        self.pairs.build(P.pos, 0.5 * P.diameter, P.gid, saved)
+        self.pairs.build(P.pos, 0.5 * P.diameter, P.gid, saved, same_rows=same_rows)
+        old = (self.wstart, self.wid, self.whist)
         self._build_walls(skin)
-        if wsaved is not None:
+        if same_rows:
+            carry_wall_history(old[0], old[1], old[2], self.wstart, self.wid, self.whist, n)
+        elif wsaved is not None:
             restore_wall_history(self.wstart, self.wid, P.gid, n, wsaved[0], wsaved[1], self.whist)
         else:
             self.whist[:] = 0.0
-        self.pos_ref = P.pos.copy()
+        if self.pos_ref.shape == P.pos.shape:
+            self.pos_ref[:] = P.pos
+        else:
+            self.pos_ref = P.pos.copy()
         self._dirty = False
         self._lists_valid = True
 
@@ -212,6 +235,7 @@ class DEM:
         self._lists_valid = False
 
     def _build_walls(self, skin: float) -> None:
+        """New particle-wall candidate lists (fresh arrays: the old ones may still be needed for the history)."""
         P = self.particles
         W = self.walls
         n = P.n
@@ -220,12 +244,13 @@ class DEM:
         self.wstart = np.zeros(n + 1, dtype=np.int64)
         args = (P.pos, 0.5 * P.diameter, n, skin, W.plane_p, W.plane_n, W.facets, W.nv, W.glo, W.gsize, W.gdims,
                 W.gstart, W.gitems, self.wstart)  # fmt: skip
-        need = build_wall_pairs(*args, self.wid)
-        if need > self.wid.size:
-            self.wid = np.zeros(int(need * 1.25) + 16, dtype=np.int64)
-            need = build_wall_pairs(*args, self.wid)
-        if self.whist.shape[0] < self.wid.size:
-            self.whist = np.zeros((self.wid.size, 3))
+        wid = np.zeros(max(64, self.wid.size), dtype=np.int64)
+        need = build_wall_pairs(*args, wid)
+        if need > wid.size:
+            wid = np.zeros(int(need * 1.25) + 16, dtype=np.int64)
+            need = build_wall_pairs(*args, wid)
+        self.wid = wid
+        self.whist = np.zeros((wid.size, 3))
 
     # ------------------------------------------------------------------ stepping
 
