@@ -166,21 +166,14 @@ def _spring(p, fn_abs, tx, ty, tz, vt_damp, hx, hy, hz, dt):
 def linear_history(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, dt_eval, dt_store):
     """Normal force of `linear` + tangential spring-dashpot with Coulomb slider (seed 000 eqs 7-9), force on a (N).
 
-    The stored elongation is first rotated onto the current tangent plane (its length kept), then grows by
-    u_t dt; the tangential damping is 2 cet sqrt(k_t mt_eff) (seed 000 eq 13b with the restitution's ratio).
+    The stored elongation is first projected onto the current tangent plane (as LAMMPS' hooke/history), then
+    grows by u_t dt; the tangential damping is 2 cet sqrt(k_t mt_eff) (seed 000 eq 13b with the restitution's ratio).
     """
     fn, tx, ty, tz = _normal(p, delta, nx, ny, nz, vx, vy, vz, m_eff)
-    hn = hx * nx + hy * ny + hz * nz
+    hn = hx * nx + hy * ny + hz * nz  # project the elongation on the current tangent plane
     px = hx - hn * nx
     py = hy - hn * ny
     pz = hz - hn * nz
-    if hn != 0.0:  # rotate (not shrink) the elongation onto the tangent plane
-        p2 = px * px + py * py + pz * pz
-        if p2 > 0.0:
-            s = math.sqrt((p2 + hn * hn) / p2)
-            px *= s
-            py *= s
-            pz *= s
     damp = 2.0 * p.cet * math.sqrt(p.kt * mt_eff)
     fabs = abs(fn)
     ftx, fty, ftz, ex, ey, ez = _spring(p, fabs, tx, ty, tz, damp, px, py, pz, dt_eval)

@@ -50,7 +50,12 @@ def compute_forces(
 ):
     """Set force (N) = m g + contact forces, torque (N m) = contact torques of rows [0, n); returns max overlap (m)."""
     rot = 1.0 if rotation else 0.0
+    invm = np.empty(n)  # 1/m and r^2/I once per particle instead of once per pair
+    kr = np.empty(n)
     for i in range(n):
+        invm[i] = 1.0 / mass[i]
+        r = 0.5 * diameter[i]
+        kr[i] = r * r / inertia[i] * rot
         for a in range(3):
             force[i, a] = mass[i] * gvec[a] if i < n_owned else 0.0
             torque[i, a] = 0.0
@@ -61,8 +66,8 @@ def compute_forces(
         yi = pos[i, 1]
         zi = pos[i, 2]
         ri = 0.5 * diameter[i]
-        mi = mass[i]
-        ki = ri * ri / inertia[i] * rot
+        imi = invm[i]
+        ki = kr[i]
         fxi = 0.0
         fyi = 0.0
         fzi = 0.0
@@ -96,11 +101,9 @@ def compute_forces(
             vx = vel[i, 0] - vel[j, 0] + (wy * nz - wz * ny)
             vy = vel[i, 1] - vel[j, 1] + (wz * nx - wx * nz)
             vz = vel[i, 2] - vel[j, 2] + (wx * ny - wy * nx)
-            mj = mass[j]
-            m_eff = mi * mj / (mi + mj)  # seed 001 eq 11
-            mt_eff = m_eff
-            if rotation:
-                mt_eff = 1.0 / (1.0 / m_eff + ki + rj * rj / inertia[j])
+            im = imi + invm[j]
+            m_eff = 1.0 / im  # seed 001 eq 11
+            mt_eff = 1.0 / (im + ki + kr[j])
             fx, fy, fz, hx, hy, hz = pair_force(
                 pp, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hist_in[k, 0], hist_in[k, 1], hist_in[k, 2],
                 dt_eval, dt_store,
