@@ -109,7 +109,7 @@ class ContactLaw:
         return math.pi / math.sqrt(p.kt / mt_eff)
 
 
-@njit(cache=True, inline="always", fastmath=FAST)
+@njit(cache=True, inline="always", fastmath=FAST, error_model="numpy")
 def _normal(p, delta, nx, ny, nz, vx, vy, vz, m_eff):
     vn = vx * nx + vy * ny + vz * nz
     # seed 001 eq 8 (+ eq 18: gamma_n = ce * omega_0, 2 gamma_n M = 2 ce sqrt(kn M)); force on a along n
@@ -117,7 +117,7 @@ def _normal(p, delta, nx, ny, nz, vx, vy, vz, m_eff):
     return fn, vx - vn * nx, vy - vn * ny, vz - vn * nz  # seed 001 eqs 13-14
 
 
-@njit(cache=True, fastmath=FAST)
+@njit(cache=True, fastmath=FAST, error_model="numpy")
 def linear(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, dt_eval, dt_store):
     """Spring-dashpot normal force + Coulomb sliding (seed 001 eqs 8-19), force on a (N).
 
@@ -140,7 +140,7 @@ def linear(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, dt_eval,
     return fx, fy, fz, 0.0, 0.0, 0.0
 
 
-@njit(cache=True, inline="always", fastmath=FAST)
+@njit(cache=True, inline="always", fastmath=FAST, error_model="numpy")
 def _spring(p, fn_abs, tx, ty, tz, vt_damp, hx, hy, hz, dt):
     ex = hx + dt * tx
     ey = hy + dt * ty
@@ -162,7 +162,7 @@ def _spring(p, fn_abs, tx, ty, tz, vt_damp, hx, hy, hz, dt):
     return fx, fy, fz, ex, ey, ez
 
 
-@njit(cache=True, fastmath=FAST)
+@njit(cache=True, fastmath=FAST, error_model="numpy")
 def linear_history(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, dt_eval, dt_store):
     """Normal force of `linear` + tangential spring-dashpot with Coulomb slider (seed 000 eqs 7-9), force on a (N).
 

@@ -17,7 +17,7 @@ from febed.dem.contact import FAST, pair_force
 from febed.dem.walls import MAX_WALL_CONTACTS, accept_contacts, wall_point
 
 
-@njit(cache=True, fastmath=FAST)
+@njit(cache=True, fastmath=FAST, error_model="numpy")
 def compute_forces(
     pos,
     vel,

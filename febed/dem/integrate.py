@@ -20,7 +20,7 @@ from febed.dem.forces import compute_forces
 from febed.schema import INTEGRATORS
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _kick(n, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2):
     for i in range(n):
         s = h / mass[i]
@@ -36,7 +36,7 @@ def _kick(n, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2):
             omega[i, 1] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp, wp,
                   pos_ref, half_skin):  # fmt: skip
     """Fused pass: v += kick a; x += dt v; predicted v^n+1 = v + dt/2 a; returns True if a particle moved too far."""
@@ -68,7 +68,7 @@ def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass,
     return far
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def verlet_steps(
     n_steps, dt, pos, vel, omega, force, torque, diameter, mass, inertia, n_owned, n, fext, pos_ref, half_skin,
     start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2, resume,
@@ -112,7 +112,7 @@ def verlet_steps(
     return n_steps, worst, 0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def rk2_steps(
     n_steps, dt, pos, vel, omega, force, torque, diameter, mass, inertia, n_owned, n, fext, pos_ref, half_skin,
     start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2, resume,
@@ -144,7 +144,7 @@ def rk2_steps(
     return n_steps, worst, 0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0):
     """Save the state and take the half step of seed 001 eq 40."""
     for i in range(n_owned):
@@ -163,7 +163,7 @@ def _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, r
             omega[i, 1] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0, pos_ref):
     """Full step of seed 001 eq 41 from the saved state; returns max |x - x_ref| + dt |v| (m)."""
     worst = 0.0
