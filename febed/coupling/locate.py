@@ -24,162 +24,245 @@ FOUND, OUTSIDE_DOMAIN, OUTSIDE_LOCAL = 0, 1, 2
 INSIDE_TOL = 1e-10  # tolerance on reference coordinates for "inside"
 _NEWTON_ITERS = 30
 
-# facet across which a point leaves, for ξ_a < 0 (row 0) and ξ_a > 1 (row 1), DOLFINx reference facets
-_QUAD_FACET = np.array([[1, 0], [2, 3]], dtype=np.int64)
-_HEX_FACET = np.array([[2, 1, 0], [3, 4, 5]], dtype=np.int64)
-
 
 @njit(cache=True)
-def _solve(gdim, J, r, out):
-    """Solve J out = r for a 2x2 or 3x3 matrix by Cramer's rule; returns False if singular."""
-    if gdim == 2:
-        det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        if det == 0.0:
-            return False
-        out[0] = (r[0] * J[1, 1] - J[0, 1] * r[1]) / det
-        out[1] = (J[0, 0] * r[1] - r[0] * J[1, 0]) / det
-        out[2] = 0.0
-        return True
-    c00 = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]
-    c01 = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
-    c02 = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
-    det = J[0, 0] * c00 + J[0, 1] * c01 + J[0, 2] * c02
+def _solve2(a00, a01, a10, a11, r0, r1):
+    """Solve the 2x2 system [[a00, a01], [a10, a11]] x = r by Cramer's rule: (ok, x0, x1)."""
+    det = a00 * a11 - a01 * a10
     if det == 0.0:
-        return False
-    c10 = J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2]
-    c11 = J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
-    c12 = J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1]
-    c20 = J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1]
-    c21 = J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2]
-    c22 = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-    out[0] = (c00 * r[0] + c10 * r[1] + c20 * r[2]) / det
-    out[1] = (c01 * r[0] + c11 * r[1] + c21 * r[2]) / det
-    out[2] = (c02 * r[0] + c12 * r[1] + c22 * r[2]) / det
-    return True
+        return False, 0.0, 0.0
+    return True, (r0 * a11 - a01 * r1) / det, (a00 * r1 - r0 * a10) / det
 
 
 @njit(cache=True)
-def reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, x, ref, J, r, d):
-    """Reference coordinates `ref` (3,) of point x in cell c; returns (how far outside, exit reference facet).
+def _solve3(a00, a01, a02, a10, a11, a12, a20, a21, a22, r0, r1, r2):
+    """Solve the 3x3 system A x = r by Cramer's rule: (ok, x0, x1, x2)."""
+    c00 = a11 * a22 - a12 * a21
+    c01 = a12 * a20 - a10 * a22
+    c02 = a10 * a21 - a11 * a20
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if det == 0.0:
+        return False, 0.0, 0.0, 0.0
+    c10 = a02 * a21 - a01 * a22
+    c11 = a00 * a22 - a02 * a20
+    c12 = a01 * a20 - a00 * a21
+    c20 = a01 * a12 - a02 * a11
+    c21 = a02 * a10 - a00 * a12
+    c22 = a00 * a11 - a01 * a10
+    inv = 1.0 / det
+    return (
+        True,
+        (c00 * r0 + c10 * r1 + c20 * r2) * inv,
+        (c01 * r0 + c11 * r1 + c21 * r2) * inv,
+        (c02 * r0 + c12 * r1 + c22 * r2) * inv,
+    )
 
-    The first value is <= 0 inside (minus the distance to the nearest facet in reference units) and > 0
-    outside; the second is the reference facet the point is most outside of. affine (nc,) flags
-    quadrilaterals/hexahedra whose map is affine (one linear solve instead of Newton). J (3, 3), r, d (3,)
-    are scratch.
+
+@njit(cache=True)
+def _affine_ref(gdim, x_dofs, d0, d1, d2, d3, px, py, pz):
+    """Solve p = x_d0 + Σ_b ξ_b (x_{d_{b+1}} - x_d0) for ξ: (ok, ξ, η, ζ); d3 unused in 2D.
+
+    Hot helpers take indices and scalars, never array views (views cost reference-count updates).
     """
-    dofs = cell_dofs[c]
-    if kind == TRIANGLE or kind == TETRAHEDRON:
-        x0 = x_dofs[dofs[0]]
-        for a in range(gdim):
-            r[a] = x[a] - x0[a]
-            for b in range(gdim):
-                J[a, b] = x_dofs[dofs[b + 1], a] - x0[a]
-        if not _solve(gdim, J, r, ref):
-            return 1e300, 0
-        lam0 = 1.0
-        for a in range(gdim):
-            lam0 -= ref[a]
-        worst = -lam0
+    if gdim == 2:
+        ok, a, b = _solve2(
+            x_dofs[d1, 0] - x_dofs[d0, 0], x_dofs[d2, 0] - x_dofs[d0, 0],
+            x_dofs[d1, 1] - x_dofs[d0, 1], x_dofs[d2, 1] - x_dofs[d0, 1],
+            px - x_dofs[d0, 0], py - x_dofs[d0, 1],
+        )  # fmt: skip
+        return ok, a, b, 0.0
+    return _solve3(
+        x_dofs[d1, 0] - x_dofs[d0, 0], x_dofs[d2, 0] - x_dofs[d0, 0], x_dofs[d3, 0] - x_dofs[d0, 0],
+        x_dofs[d1, 1] - x_dofs[d0, 1], x_dofs[d2, 1] - x_dofs[d0, 1], x_dofs[d3, 1] - x_dofs[d0, 1],
+        x_dofs[d1, 2] - x_dofs[d0, 2], x_dofs[d2, 2] - x_dofs[d0, 2], x_dofs[d3, 2] - x_dofs[d0, 2],
+        px - x_dofs[d0, 0], py - x_dofs[d0, 1], pz - x_dofs[d0, 2],
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _newton_quad(x_dofs, cell_dofs, c, px, py):
+    """Inverse of the bilinear map of quadrilateral c by Newton from its centre: (converged, ξ, η)."""
+    xi, eta = 0.5, 0.5
+    for _it in range(_NEWTON_ITERS):
+        r0 = -px
+        r1 = -py
+        j00 = j01 = j10 = j11 = 0.0
+        for k in range(4):
+            fx = xi if k & 1 else 1.0 - xi
+            fy = eta if k & 2 else 1.0 - eta
+            gx = 1.0 if k & 1 else -1.0
+            gy = 1.0 if k & 2 else -1.0
+            dof = cell_dofs[c, k]
+            xk0 = x_dofs[dof, 0]
+            xk1 = x_dofs[dof, 1]
+            phi = fx * fy
+            r0 += phi * xk0
+            r1 += phi * xk1
+            j00 += gx * fy * xk0
+            j01 += fx * gy * xk0
+            j10 += gx * fy * xk1
+            j11 += fx * gy * xk1
+        ok, d0, d1 = _solve2(j00, j01, j10, j11, r0, r1)
+        if not ok:
+            return False, xi, eta
+        # clamping keeps far-away points from sending Newton astray: the sign of the violation is what matters
+        xi = min(max(xi - d0, -1.0), 2.0)
+        eta = min(max(eta - d1, -1.0), 2.0)
+        if max(abs(d0), abs(d1)) < 1e-13:
+            return True, xi, eta
+    return False, xi, eta
+
+
+@njit(cache=True)
+def _newton_hex(x_dofs, cell_dofs, c, px, py, pz):
+    """Inverse of the trilinear map of hexahedron c by Newton from its centre: (converged, ξ, η, ζ)."""
+    xi, eta, zeta = 0.5, 0.5, 0.5
+    for _it in range(_NEWTON_ITERS):
+        r0 = -px
+        r1 = -py
+        r2 = -pz
+        j00 = j01 = j02 = j10 = j11 = j12 = j20 = j21 = j22 = 0.0
+        for k in range(8):
+            fx = xi if k & 1 else 1.0 - xi
+            fy = eta if k & 2 else 1.0 - eta
+            fz = zeta if k & 4 else 1.0 - zeta
+            gx = (1.0 if k & 1 else -1.0) * fy * fz
+            gy = (1.0 if k & 2 else -1.0) * fx * fz
+            gz = (1.0 if k & 4 else -1.0) * fx * fy
+            dof = cell_dofs[c, k]
+            xk0 = x_dofs[dof, 0]
+            xk1 = x_dofs[dof, 1]
+            xk2 = x_dofs[dof, 2]
+            phi = fx * fy * fz
+            r0 += phi * xk0
+            r1 += phi * xk1
+            r2 += phi * xk2
+            j00 += gx * xk0
+            j01 += gy * xk0
+            j02 += gz * xk0
+            j10 += gx * xk1
+            j11 += gy * xk1
+            j12 += gz * xk1
+            j20 += gx * xk2
+            j21 += gy * xk2
+            j22 += gz * xk2
+        ok, d0, d1, d2 = _solve3(j00, j01, j02, j10, j11, j12, j20, j21, j22, r0, r1, r2)
+        if not ok:
+            return False, xi, eta, zeta
+        xi = min(max(xi - d0, -1.0), 2.0)
+        eta = min(max(eta - d1, -1.0), 2.0)
+        zeta = min(max(zeta - d2, -1.0), 2.0)
+        if max(abs(d0), abs(d1), abs(d2)) < 1e-13:
+            return True, xi, eta, zeta
+    return False, xi, eta, zeta
+
+
+@njit(cache=True)
+def _violation(simplex, quad, gdim, a, b, e):
+    """How far reference point (a, b, e) is outside the reference cell, and the DOLFINx facet it is most outside of.
+
+    Simplex: facet k is opposite vertex k (λ_0 = 1 - a - b - e). Quadrilateral facets: ξ=0 -> 1, ξ=1 -> 2,
+    η=0 -> 0, η=1 -> 3; hexahedron: ξ=0 -> 2, ξ=1 -> 3, η=0 -> 1, η=1 -> 4, ζ=0 -> 0, ζ=1 -> 5.
+    """
+    if simplex:
+        worst = a + b + e - 1.0
         facet = 0
-        for a in range(gdim):
-            if -ref[a] > worst:
-                worst = -ref[a]
-                facet = a + 1
+        if -a > worst:
+            worst = -a
+            facet = 1
+        if -b > worst:
+            worst = -b
+            facet = 2
+        if gdim == 3 and -e > worst:
+            worst = -e
+            facet = 3
         return worst, facet
-    nv = 4 if kind == QUADRILATERAL else 8
-    converged = False
-    if affine[c]:  # parallelogram / parallelepiped: x = x0 + Σ_b ξ_b (x_{2^b} - x0)
-        x0 = x_dofs[dofs[0]]
-        for a in range(gdim):
-            r[a] = x[a] - x0[a]
-            for b in range(gdim):
-                J[a, b] = x_dofs[dofs[1 << b], a] - x0[a]
-        if not _solve(gdim, J, r, ref):
-            return 1e300, 0
-        converged = True
-        nv = 0  # skip Newton
-    # bilinear / trilinear map: Newton from the cell centre
-    if nv > 0:
-        for a in range(3):
-            ref[a] = 0.5 if a < gdim else 0.0
-    for _it in range(_NEWTON_ITERS if nv > 0 else 0):
-        for a in range(gdim):
-            r[a] = -x[a]
-            for b in range(gdim):
-                J[a, b] = 0.0
-        for k in range(nv):
-            phi = 1.0
-            for b in range(gdim):
-                phi *= ref[b] if (k >> b) & 1 else 1.0 - ref[b]
-            xk = x_dofs[dofs[k]]
-            for b in range(gdim):
-                dphi = 1.0
-                for e in range(gdim):
-                    if e == b:
-                        dphi *= 1.0 if (k >> e) & 1 else -1.0
-                    else:
-                        dphi *= ref[e] if (k >> e) & 1 else 1.0 - ref[e]
-                for a in range(gdim):
-                    J[a, b] += dphi * xk[a]
-            for a in range(gdim):
-                r[a] += phi * xk[a]
-        if not _solve(gdim, J, r, d):
-            return 1e300, 0
-        step = 0.0
-        for a in range(gdim):
-            ref[a] -= d[a]
-            step = max(step, abs(d[a]))
-            # keep far-away points from sending Newton astray: the sign of the violation is what matters
-            ref[a] = min(max(ref[a], -1.0), 2.0)
-        if step < 1e-13:
-            converged = True
-            break
-    worst = -1e300
-    facet = 0
-    for a in range(gdim):
-        lo = -ref[a]
-        hi = ref[a] - 1.0
-        if lo > worst:
-            worst = lo
-            facet = _QUAD_FACET[0, a] if kind == QUADRILATERAL else _HEX_FACET[0, a]
-        if hi > worst:
-            worst = hi
-            facet = _QUAD_FACET[1, a] if kind == QUADRILATERAL else _HEX_FACET[1, a]
-    if not converged and worst <= INSIDE_TOL:
-        worst = 1e300  # not converged: not trusted as inside
+    worst = -a
+    facet = 1 if quad else 2
+    if a - 1.0 > worst:
+        worst = a - 1.0
+        facet = 2 if quad else 3
+    if -b > worst:
+        worst = -b
+        facet = 0 if quad else 1
+    if b - 1.0 > worst:
+        worst = b - 1.0
+        facet = 3 if quad else 4
+    if gdim == 3:
+        if -e > worst:
+            worst = -e
+            facet = 0
+        if e - 1.0 > worst:
+            worst = e - 1.0
+            facet = 5
     return worst, facet
 
 
 @njit(cache=True)
-def _grid_search(kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, start, cells, x, ref, J, r, d):
-    """Cell of the grid bin of x whose reference coordinates put x inside, or -1."""
+def reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, px, py, pz):
+    """Reference coordinates of point (px, py, pz) in cell c: (how far outside, exit facet, ξ, η, ζ).
+
+    The first value is <= 0 inside (minus the distance to the nearest facet in reference units) and > 0
+    outside; the second is the DOLFINx reference facet the point is most outside of. affine (nc,) flags
+    quadrilaterals/hexahedra whose map is affine (one linear solve instead of Newton). ζ = 0 in 2D.
+    """
+    if kind == TRIANGLE or kind == TETRAHEDRON:
+        ok, a, b, e = _affine_ref(
+            gdim, x_dofs, cell_dofs[c, 0], cell_dofs[c, 1], cell_dofs[c, 2], cell_dofs[c, gdim], px, py, pz
+        )
+        if not ok:
+            return 1e300, 0, a, b, e
+        worst, facet = _violation(True, False, gdim, a, b, e)
+        return worst, facet, a, b, e
+    if affine[c]:  # parallelogram / parallelepiped: x = x0 + Σ_b ξ_b (x_{2^b} - x0)
+        ok, a, b, e = _affine_ref(
+            gdim, x_dofs, cell_dofs[c, 0], cell_dofs[c, 1], cell_dofs[c, 2], cell_dofs[c, 4 if gdim == 3 else 0],
+            px, py, pz,
+        )  # fmt: skip
+    elif kind == QUADRILATERAL:
+        ok, a, b = _newton_quad(x_dofs, cell_dofs, c, px, py)
+        e = 0.0
+    else:
+        ok, a, b, e = _newton_hex(x_dofs, cell_dofs, c, px, py, pz)
+    worst, facet = _violation(False, kind == QUADRILATERAL, gdim, a, b, e)
+    if not ok and worst <= INSIDE_TOL:
+        worst = 1e300  # not converged (or singular): not trusted as inside
+    return worst, facet, a, b, e
+
+
+@njit(cache=True)
+def _grid_search(kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, start, cells, px, py, pz):
+    """Cell of the grid bin of (px, py, pz) holding the point: (cell or -1, ξ, η, ζ)."""
     b = 0
     for a in range(3):
-        i = int(np.floor((x[a] - origin[a]) / h[a]))
+        xa = px if a == 0 else (py if a == 1 else pz)
+        i = int(np.floor((xa - origin[a]) / h[a]))
         if i < 0 or i >= n[a]:
-            return -1
+            return -1, 0.0, 0.0, 0.0
         b = b * n[a] + i
     for s in range(start[b], start[b + 1]):
         c = cells[s]
         out = False
         for a in range(gdim):
+            xa = px if a == 0 else (py if a == 1 else pz)
             tol = 1e-9 * (bbox[c, 1, a] - bbox[c, 0, a])
-            if x[a] < bbox[c, 0, a] - tol or x[a] > bbox[c, 1, a] + tol:
+            if xa < bbox[c, 0, a] - tol or xa > bbox[c, 1, a] + tol:
                 out = True
         if out:
             continue
-        worst, _f = reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, x, ref, J, r, d)
+        worst, _f, r0, r1, r2 = reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, px, py, pz)
         if worst <= INSIDE_TOL:
-            return c
-    return -1
+            return c, r0, r1, r2
+    return -1, 0.0, 0.0, 0.0
 
 
 @njit(cache=True)
-def _nearest_start(gdim, origin, h, n, start, cells, x):
-    """A cell of the grid bin nearest to x (x clamped into the grid), to start a classifying walk; -1 if none."""
+def _nearest_start(origin, h, n, start, cells, px, py, pz):
+    """A cell of the grid bin nearest to the point (clamped into the grid), to start a classifying walk; -1 if none."""
     idx = np.empty(3, dtype=np.int64)
     for a in range(3):
-        idx[a] = min(max(int(np.floor((x[a] - origin[a]) / h[a])), 0), n[a] - 1)
+        xa = px if a == 0 else (py if a == 1 else pz)
+        idx[a] = min(max(int(np.floor((xa - origin[a]) / h[a])), 0), n[a] - 1)
     # search growing shells of bins around the clamped bin
     for rad in range(max(n[0], n[1], n[2])):
         for i in range(max(idx[0] - rad, 0), min(idx[0] + rad, n[0] - 1) + 1):
@@ -200,33 +283,57 @@ def locate_kernel(
 
     Returns the number of points not found in the local mesh.
     """
-    J = np.zeros((3, 3))
-    r = np.zeros(3)
-    d = np.zeros(3)
     nc = cell_dofs.shape[0]
+    simplex = kind == TRIANGLE or kind == TETRAHEDRON
     missing = 0
     for p in range(x.shape[0]):
-        xp = x[p]
-        rp = ref[p]
+        px = x[p, 0]
+        py = x[p, 1]
+        pz = x[p, 2]
         c = cell[p]
         found = -1
         last_c = -1
         last_f = -1
+        r0 = r1 = r2 = 0.0
         for attempt in range(2):
             if attempt == 1:
                 # fallback: the grid index; if that fails too, a walk from a nearby cell classifies the exit
-                found = _grid_search(
-                    kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, start, cells, xp, rp, J, r, d
+                found, r0, r1, r2 = _grid_search(
+                    kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, start, cells, px, py, pz
                 )
-                if found >= 0:
+                if found >= 0 or last_c >= 0:
                     break
-                if last_c >= 0:
-                    break
-                c = _nearest_start(gdim, origin, h, n, start, cells, xp)
+                c = _nearest_start(origin, h, n, start, cells, px, py, pz)
             if c < 0 or c >= nc:
                 continue
             for _s in range(max_steps):
-                worst, f = reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, xp, rp, J, r, d)
+                if affine[c]:
+                    # simplex / affine cell: the solve of `reference_coords` written out here, because a call
+                    # with array arguments costs more than the solve itself in Numba (reference counting)
+                    d0 = cell_dofs[c, 0]
+                    d1 = cell_dofs[c, 1]
+                    d2 = cell_dofs[c, 2]
+                    if gdim == 2:
+                        ok, r0, r1 = _solve2(
+                            x_dofs[d1, 0] - x_dofs[d0, 0], x_dofs[d2, 0] - x_dofs[d0, 0],
+                            x_dofs[d1, 1] - x_dofs[d0, 1], x_dofs[d2, 1] - x_dofs[d0, 1],
+                            px - x_dofs[d0, 0], py - x_dofs[d0, 1],
+                        )  # fmt: skip
+                        r2 = 0.0
+                    else:
+                        d3 = cell_dofs[c, 3 if simplex else 4]
+                        ok, r0, r1, r2 = _solve3(
+                            x_dofs[d1, 0] - x_dofs[d0, 0], x_dofs[d2, 0] - x_dofs[d0, 0], x_dofs[d3, 0] - x_dofs[d0, 0],
+                            x_dofs[d1, 1] - x_dofs[d0, 1], x_dofs[d2, 1] - x_dofs[d0, 1], x_dofs[d3, 1] - x_dofs[d0, 1],
+                            x_dofs[d1, 2] - x_dofs[d0, 2], x_dofs[d2, 2] - x_dofs[d0, 2], x_dofs[d3, 2] - x_dofs[d0, 2],
+                            px - x_dofs[d0, 0], py - x_dofs[d0, 1], pz - x_dofs[d0, 2],
+                        )  # fmt: skip
+                    if not ok:
+                        worst, f = 1e300, 0
+                    else:
+                        worst, f = _violation(simplex, kind == QUADRILATERAL, gdim, r0, r1, r2)
+                else:
+                    worst, f, r0, r1, r2 = reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, px, py, pz)
                 if worst <= INSIDE_TOL:
                     found = c
                     break
@@ -242,11 +349,13 @@ def locate_kernel(
             cell[p] = found
             status[p] = FOUND
             exit_facet[p] = -1
+            ref[p, 0] = r0
+            ref[p, 1] = r1
+            ref[p, 2] = r2
         else:
             missing += 1
             cell[p] = -1
-            for a in range(3):
-                rp[a] = 0.0
+            ref[p, 0] = ref[p, 1] = ref[p, 2] = 0.0
             if last_c >= 0 and cell_nbr[last_c, last_f] == NBR_DOMAIN_BOUNDARY:
                 status[p] = OUTSIDE_DOMAIN
                 exit_facet[p] = cell_facets[last_c, last_f]
@@ -290,15 +399,17 @@ def locate(
 @njit(cache=True)
 def brute_force_kernel(kind, gdim, cell_dofs, x_dofs, affine, x, cell, ref):
     """Reference search: the first cell (in local order) holding each point, by testing every cell."""
-    J = np.zeros((3, 3))
-    r = np.zeros(3)
-    d = np.zeros(3)
     for p in range(x.shape[0]):
         cell[p] = -1
         for c in range(cell_dofs.shape[0]):
-            worst, _f = reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, x[p], ref[p], J, r, d)
+            worst, _f, r0, r1, r2 = reference_coords(
+                kind, gdim, cell_dofs, x_dofs, affine, c, x[p, 0], x[p, 1], x[p, 2]
+            )
             if worst <= INSIDE_TOL:
                 cell[p] = c
+                ref[p, 0] = r0
+                ref[p, 1] = r1
+                ref[p, 2] = r2
                 break
 
 
