@@ -3,7 +3,7 @@
     febed run CASE.toml [--set section.key=value ...] [--overwrite]   run a case (also under mpirun -n N)
     febed check CASE.toml [--set ...]                                 validate a case and its mesh, run nothing
     febed params [SECTION]                                            every parameter: default, unit, help
-    febed mesh NAME [--level L] [--cell C] [--size H] -o FILE.msh     build a built-in mesh (or --geo source)
+    febed mesh NAME [--level L] [--cell C] [--size H] [--extent ...] -o FILE.msh   build a built-in mesh
 
 Errors in the user's input (case, mesh, output folder) are printed as one clear message and exit with
 status 2; a traceback means a bug in febed.
@@ -64,8 +64,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--level", default="coarse", choices=list(PSEUDO2D_LEVELS), help="pseudo2d: seed 001 Table 2")
     m.add_argument("--cell", default=None, help="hexahedron|tetrahedron (pseudo2d), quadrilateral|triangle (wang2d)")
     m.add_argument("--size", type=float, default=0.005, help="cell size of unstructured meshes [m]")
-    m.add_argument("-o", "--output", required=True, help="output file (.msh; with --geo, .geo_unrolled)")
-    m.add_argument("--geo", action="store_true", help="write the gmsh geometry source instead of a mesh")
+    m.add_argument("--extent", type=float, nargs="+", help="box: its lengths lx ly [lz] [m]")
+    m.add_argument("-o", "--output", required=True, help="output file (.msh)")
     return p
 
 
@@ -102,11 +102,11 @@ def cmd_check(args) -> int:
 
 def cmd_mesh(args) -> int:
     """Build a built-in mesh (rank 0 only)."""
-    from febed.meshing import build_msh, write_geo
+    from febed.meshing import build_msh
 
     if MPI.COMM_WORLD.rank == 0:
-        fn = write_geo if args.geo else build_msh
-        out = fn(args.name, args.output, level=args.level, cell=args.cell, size=args.size)
+        kw = {"extent": args.extent} if args.name == "box" else {}
+        out = build_msh(args.name, args.output, level=args.level, cell=args.cell, size=args.size, **kw)
         print(f"wrote {out}")
     return 0
 

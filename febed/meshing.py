@@ -37,7 +37,7 @@ PSEUDO2D_LEVELS = {
 WANG2D_BOX = (0.09, 0.5)
 WANG2D_CELLS = (18, 100)
 CYLINDER = {"diameter": 0.05, "height": 0.15}
-GEOMETRIES = ("pseudo2d", "wang2d", "cylinder")
+GEOMETRIES = ("pseudo2d", "wang2d", "cylinder", "box")
 
 
 class MeshError(ValueError):
@@ -220,6 +220,30 @@ def _cylinder(gmsh, size: float) -> None:
     gmsh.option.setNumber("Mesh.MeshSizeMin", size / 2)
 
 
+def _box(gmsh, extent, cell: str, size: float) -> int:
+    """A structured box [0, extent] of cells of about `size`; bottom (along gravity) `inlet`, top `outlet`."""
+    extent = [float(e) for e in extent]
+    dim = len(extent)
+    n = [max(1, round(e / size)) for e in extent]
+    geo = gmsh.model.geo
+    p = [geo.addPoint(*xy, 0.0) for xy in ((0, 0), (extent[0], 0), (extent[0], extent[1]), (0, extent[1]))]
+    lines = [geo.addLine(p[i], p[(i + 1) % 4]) for i in range(4)]
+    s = geo.addPlaneSurface([geo.addCurveLoop(lines)])
+    for k, line in enumerate(lines):
+        geo.mesh.setTransfiniteCurve(line, n[k % 2] + 1)
+    geo.mesh.setTransfiniteSurface(s)
+    if cell in ("quadrilateral", "hexahedron"):
+        geo.mesh.setRecombine(2, s)
+    if dim == 3:
+        geo.extrude([(2, s)], 0, 0, extent[2], numElements=[n[2]], recombine=cell == "hexahedron")
+    geo.synchronize()
+    up, top = dim - 1, extent[dim - 1]
+    _tag_boundaries(
+        gmsh, dim, lambda c, tag: "inlet" if np.isclose(c[up], 0) else "outlet" if np.isclose(c[up], top) else "walls"
+    )
+    return dim
+
+
 def _tag_boundaries(gmsh, dim: int, classify) -> None:
     """Name the facet entities by the centre of their bounding box; one physical group for all cells."""
     groups: dict[str, list[int]] = {}
@@ -241,12 +265,14 @@ def _check_builtin(name: str, level: str, cell: str | None, size: float) -> str:
     """Validate a built-in mesh request; return the cell type (default per geometry)."""
     if name not in GEOMETRIES:
         raise MeshError(f"unknown built-in mesh {name!r}; choose one of {', '.join(GEOMETRIES)}")
-    cell = cell or {"pseudo2d": "hexahedron", "wang2d": "quadrilateral", "cylinder": "tetrahedron"}[name]
+    cell = cell or {"pseudo2d": "hexahedron", "wang2d": "quadrilateral", "cylinder": "tetrahedron"}.get(name)
     allowed = {
         "pseudo2d": ("hexahedron", "tetrahedron"),
         "wang2d": ("quadrilateral", "triangle"),
         "cylinder": ("tetrahedron",),
+        "box": ("hexahedron", "tetrahedron", "quadrilateral", "triangle"),
     }[name]
+    cell = cell or "hexahedron"
     if cell not in allowed:
         raise MeshError(f"built-in mesh {name!r} comes in {', '.join(allowed)} cells, not {cell!r}")
     if name == "pseudo2d" and level not in PSEUDO2D_LEVELS:
@@ -256,10 +282,14 @@ def _check_builtin(name: str, level: str, cell: str | None, size: float) -> str:
     return cell
 
 
-def _build_model(gmsh, name: str, level: str, cell: str, size: float) -> int:
+def _build_model(gmsh, name: str, level: str, cell: str, size: float, extent=None) -> int:
     """Build the geometry, meshing constraints and physical groups of `name`; return its dimension."""
     gmsh.clear()
     gmsh.model.add(name)
+    if name == "box":
+        if extent is None or len(extent) != (2 if cell in ("quadrilateral", "triangle") else 3):
+            raise MeshError(f"box: extent must give one length per dimension of {cell} cells, got {extent}")
+        return _box(gmsh, extent, cell, size)
     if name == "pseudo2d":
         _pseudo2d(gmsh, level, cell, size)
         return 3
@@ -289,25 +319,19 @@ def build_msh(
     level: str = "coarse",
     cell: str | None = None,
     size: float = 0.005,
+    extent=None,
 ) -> Path:
-    """Mesh built-in geometry `name` with gmsh and write it to `out` (.msh 4.1, written atomically)."""
+    """Mesh built-in geometry `name` with gmsh and write it to `out` (.msh 4.1, written atomically).
+
+    `box` is a structured box [0, extent] (2 or 3 lengths, m) of cells of about `size`, with `inlet` at the
+    bottom (y = 0 in 2D, z = 0 in 3D), `outlet` at the top and `walls` around.
+    """
     cell = _check_builtin(name, level, cell, size)
     gmsh = _gmsh()
     try:
-        dim = _build_model(gmsh, name, level, cell, size)
+        dim = _build_model(gmsh, name, level, cell, size, extent)
         gmsh.model.mesh.generate(dim)
         gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
-        return _atomic_write(gmsh, Path(out))
-    finally:
-        gmsh.clear()
-
-
-def write_geo(name: str, out: str | os.PathLike, level: str = "coarse", cell: str | None = None, size=0.005) -> Path:
-    """Write the gmsh source (`.geo_unrolled`) of built-in geometry `name`, to open in the gmsh GUI."""
-    cell = _check_builtin(name, level, cell, size)
-    gmsh = _gmsh()
-    try:
-        _build_model(gmsh, name, level, cell, size)
         return _atomic_write(gmsh, Path(out))
     finally:
         gmsh.clear()
@@ -363,13 +387,15 @@ def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = No
     return MeshData(mesh=mesh, facet_tags=ft, cell_tags=ct, tags=names, source=str(path))
 
 
-def builtin_msh_path(name: str, level: str, cell: str, size: float, cache_dir: Path) -> Path:
+def builtin_msh_path(name: str, level: str, cell: str, size: float, cache_dir: Path, extent=()) -> Path:
     """Path of the cached .msh of a built-in mesh (built on rank 0 on first use)."""
     tag = f"{name}-{level}-{cell}" if name == "pseudo2d" and cell == "hexahedron" else f"{name}-{cell}"
-    if cell == "tetrahedron":
+    if cell == "tetrahedron" or name == "box":
         tag += f"-h{size:g}"
     if name == "pseudo2d" and cell != "hexahedron":
         tag = f"{name}-{cell}-h{size:g}"
+    if name == "box":
+        tag += "-" + "x".join(f"{e:g}" for e in extent)
     return cache_dir / f"{tag}.msh"
 
 
@@ -380,14 +406,15 @@ def load_case_mesh(case, comm=MPI.COMM_WORLD, cache_dir: Path | None = None) -> 
         md = load_msh(case.resolve_path(m.file), comm)
     else:
         cell = m.cell
-        if m.builtin == "wang2d" and cell in ("hexahedron", "tetrahedron"):
+        flat = m.builtin == "wang2d" or (m.builtin == "box" and len(m.extent) == 2)
+        if flat and cell in ("hexahedron", "tetrahedron"):
             cell = "quadrilateral" if cell == "hexahedron" else "triangle"
         cache_dir = cache_dir or (case.output_dir() / "mesh")
-        path = builtin_msh_path(m.builtin, m.level, cell, m.size, cache_dir)
+        path = builtin_msh_path(m.builtin, m.level, cell, m.size, cache_dir, m.extent)
         err = None
         if comm.rank == 0 and not path.is_file():
             try:
-                build_msh(m.builtin, path, level=m.level, cell=cell, size=m.size)
+                build_msh(m.builtin, path, level=m.level, cell=cell, size=m.size, extent=m.extent or None)
             except MeshError as e:
                 err = str(e)
         err = comm.bcast(err, root=0)

@@ -136,7 +136,7 @@ SCHEMA: dict[str, dict[str, Param]] = {
             "-",
             "a built-in seed geometry instead of a file",
             str,
-            choices=("", "pseudo2d", "wang2d", "cylinder"),
+            choices=("", "pseudo2d", "wang2d", "cylinder", "box"),
         ),
         "level": Param(
             "coarse",
@@ -153,6 +153,7 @@ SCHEMA: dict[str, dict[str, Param]] = {
             choices=("hexahedron", "tetrahedron", "quadrilateral", "triangle"),
         ),
         "size": Param(0.005, "m", "target cell size of unstructured built-in meshes", float, lo=0.0, lo_open=True),
+        "extent": Param([], "m", "built-in box: its lengths [lx, ly] (2D) or [lx, ly, lz] (3D), cells of `size`", list),
         "depth": Param(
             0.0,
             "m",
@@ -204,6 +205,7 @@ SCHEMA: dict[str, dict[str, Param]] = {
             lo_open=True,
         ),
         "rotation": Param(True, "-", "integrate particle rotation (seed 001 switches it off)", bool),
+        "fixed": Param(False, "-", "cfd-dem: the particles do not move (a fixed bed); the gas still sees them", bool),
     },
     "contact": {
         "model": Param("linear-history", "-", "contact law", str, choices=CONTACT_LAWS),
@@ -250,6 +252,12 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "particle_interval": Param(0.05, "s", "simulated time between particle outputs", float, lo=0.0, lo_open=True),
         "probe_interval": Param(1e-3, "s", "simulated time between probe rows", float, lo=0.0, lo_open=True),
         "checkpoint_interval": Param(INF, "s", "simulated time between checkpoints", float, lo=0.0, lo_open=True),
+        "probe_heights": Param(
+            [], "m", "heights (along gravity) where the cross-section averaged pressure is probed", list
+        ),
+        "bed_fraction": Param(
+            0.95, "", "bed height = height below which this fraction of the particle volume lies", float, lo=0.5, hi=1.0
+        ),
         "keep_checkpoints": Param(2, "-", "how many recent checkpoints are kept", int, lo=1),
         "progress_interval": Param(2.0, "s", "wall-clock seconds between progress lines", float, lo=0.0, lo_open=True),
     },

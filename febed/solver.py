@@ -1,0 +1,265 @@
+"""The coupled CFD-DEM time loop: the one place that knows the order of operations (seed 001 sec 2.4).
+
+One gas step of size Δt (time-staggered, DESIGN.md "Data flow"):
+
+1. **Particles** (`advance_particles`): with the gas fields of step n frozen, `n_sub` DEM sub-steps of
+   Δt/n_sub ≤ T_C/dt_factor. The particles are located in the mesh (walk from the previous cell) and u, ε,
+   ∇p interpolated with the node weights once per gas step; the drag coefficient K_p and the pressure
+   force are then frozen over the step and the drag K_p (u@p − v_p) is re-evaluated with the current
+   particle velocity every `chunk` sub-steps, where chunks are short against the particle relaxation time
+   τ_p = m_p/K_p (at most 0.1 τ_p). Relocating every sub-step would change nothing measurable: in a gas
+   step a particle moves |v| Δt ≤ CFL·Δx/ε-scaled ≪ one cell, while costing a search per sub-step.
+   Gravity and contacts are the DEM's. Particles leaving through an `outlet` are removed and counted;
+   anywhere else, the run stops naming the particle.
+2. **Projection** (`project`): particle volume, K_p and K_p v_p onto the nodes of each particle's cell with
+   the same weights, the conservative neighbour filter, division by the node volumes → α_p, ε^{n+1} (with a
+   floor), K_i, K_i v̄_i.
+3. **Gas** (`febed.gas.vans.VANSSolver.step`): predictor with −K_i(u_i − v̄_i) implicit, pressure Poisson
+   with the ∂ε/∂t source, correction.
+4. **Probes and output** on their own intervals (`febed.run.Run`).
+
+Momentum exchange (seed 001 eq 29): a particle receives the drag K_p (u@p − v_p) and the pressure-gradient
+force F_P = −V_p ∇p@p; the gas receives minus both, −Σ_p ω_{p,i} K_p (u_i − v_p) implicitly through K_i and
+K_i v̄_i, and −Σ_p ω_{p,i} F_P,p explicitly. Because the gas momentum carries the full −∇P, returning F_P
+is what makes the bed's weight appear in the pressure drop. Without filtering, what the particles receive
+and what the gas gives are the same sum, since interpolation and projection share their weights
+(tested in tests/test_solver.py).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+from mpi4py import MPI
+
+import numpy as np
+
+from febed.coupling.drag import drag_kernel, get_drag_law, pressure_gradient_kernel
+from febed.coupling.interpolate import interpolate
+from febed.coupling.locate import FOUND, OUTSIDE_DOMAIN, locate
+from febed.coupling.mesh_arrays import extract_mesh_arrays
+from febed.coupling.projection import neighbour_filter, per_volume, project, solid_fraction
+from febed.coupling.weights import compute_weights
+
+
+class RunFailure(RuntimeError):
+    """The simulation went wrong (a particle escaped, NaN, ...); the message says what, where and when."""
+
+
+@dataclass
+class Timers:
+    """Wall-clock seconds spent per part of the loop (DEM / coupling / gas / output)."""
+
+    dem: float = 0.0
+    coupling: float = 0.0
+    gas: float = 0.0
+    output: float = 0.0
+    marks: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, float]:
+        """The split as a dict of seconds."""
+        return {"wall_dem": self.dem, "wall_coupling": self.coupling, "wall_gas": self.gas, "wall_output": self.output}
+
+
+class CoupledSolver:
+    """Gas (DOLFINx VANS) + particles (Numba DEM) + node-based coupling of one case.
+
+    Attributes:
+        gas: the `VANSSolver`; dem: the `DEM`; ma: the coupling's `MeshArrays` over the gas's nodal space.
+        t: simulated time (s); steps: gas steps done; left_outlet: particles removed at the outlet.
+        clipped: nodes whose void fraction was clipped to the floor at the last projection.
+    """
+
+    def __init__(self, case, md, dem, gas, log=None):
+        """Couple an already built DEM and gas solver on mesh `md` (see `build_solver`)."""
+        if md.comm.size > 1:
+            raise ValueError(
+                "[run] mode = 'cfd-dem' runs on one process in this version (distributed particles are not "
+                "implemented yet); run without mpirun"
+            )
+        self.case = case
+        self.md = md
+        self.dem = dem
+        self.gas = gas
+        self.log = log
+        self.gdim = md.gdim
+        self.depth = depth_of(case) if md.gdim == 2 else 1.0
+        self.ma = extract_mesh_arrays(md.mesh, gas.Q, depth=self.depth)
+        self.law = get_drag_law(case.coupling.drag)
+        self.rho_g = case.gas.density
+        self.mu_g = case.gas.viscosity
+        self.pressure_gradient = case.coupling.pressure_gradient
+        self.floor = case.coupling.void_fraction_floor
+        self.fixed = case.particles.fixed
+        self.passes = case.coupling.filter_passes
+        self.outlet_facets = self._outlet_facet_mask()
+        self.t = 0.0
+        self.steps = 0
+        self.left_outlet = 0
+        self.clipped = 0
+        self.n_sub = 0
+        self.timers = Timers()
+        self.last_gas = None
+        eps0 = self.project()[0]
+        gas.set_void_fraction(eps0)
+
+    # ------------------------------------------------------------------------------------------ setup
+    def _outlet_facet_mask(self) -> np.ndarray:
+        """Boolean over local facets: True on facets whose tag is an `outlet` boundary."""
+        mesh = self.md.mesh
+        fdim = mesh.topology.dim - 1
+        mesh.topology.create_entities(fdim)
+        nf = mesh.topology.index_map(fdim).size_local + mesh.topology.index_map(fdim).num_ghosts
+        mask = np.zeros(nf, dtype=bool)
+        for tag, b in self.case.boundary.items():
+            if b.type == "outlet":
+                mask[self.md.facets(tag)] = True
+        return mask
+
+    # ----------------------------------------------------------------------------------- the algorithm
+    def step(self) -> None:
+        """One gas step: particle sub-steps with the gas frozen → projection → gas step (seed 001 sec 2.4)."""
+        dt = self.gas.compute_dt()
+        self.n_sub = max(1, math.ceil(dt / self.dem.dt * (1 - 1e-12)))
+        t0 = time.perf_counter()
+        if not self.fixed:
+            self.advance_particles(dt, self.n_sub)
+        t1 = time.perf_counter()
+        eps, K, Kv, force = self.project()
+        t2 = time.perf_counter()
+        self.last_gas = self.gas.step(dt, eps=eps, K=K, Kv=Kv, force=force)
+        t3 = time.perf_counter()
+        self.timers.coupling += t2 - t1
+        self.timers.gas += t3 - t2
+        self.t += dt
+        self.steps += 1
+        self.wall_step = t3 - t0
+
+    def advance_particles(self, dt: float, n_sub: int) -> None:
+        """`n_sub` DEM steps of dt/n_sub with drag and pressure-gradient forces from the frozen gas."""
+        t0 = time.perf_counter()
+        K, u, f_p = self.fluid_state()
+        P = self.dem.particles
+        n = P.n_owned
+        gid = P.gid[:n].copy()
+        tau = float(np.min(P.mass[:n] / np.maximum(K, 1e-300))) if n else math.inf
+        chunks = min(n_sub, max(1, math.ceil(dt / (0.1 * tau))))
+        h = dt / n_sub
+        done = 0
+        for k in range(chunks):
+            steps = (n_sub * (k + 1)) // chunks - done
+            f = K[:, None] * (u - P.vel[:n]) + f_p
+            t1 = time.perf_counter()
+            self.timers.coupling += t1 - t0
+            self.dem.advance(steps, h, f)
+            t0 = time.perf_counter()
+            self.timers.dem += t0 - t1
+            done += steps
+            if not np.array_equal(P.gid[:n], gid):  # the DEM reordered its rows: follow them by gid
+                order = np.argsort(gid)
+                perm = order[np.searchsorted(gid, P.gid[:n], sorter=order)]
+                K, u, f_p, gid = K[perm], u[perm], f_p[perm], gid[perm]
+        self.timers.coupling += time.perf_counter() - t0
+
+    def locate_particles(self):
+        """Locate the owned particles (walk from the previous cell); remove outlet leavers; return (cell, w)."""
+        P = self.dem.particles
+        n = P.n_owned
+        cell = np.ascontiguousarray(P.cell[:n], dtype=np.int32)
+        cell, ref, status, exit_facet, missing = locate(self.ma, P.pos[:n], cell)
+        if missing:
+            outside = status != FOUND
+            through_outlet = outside & (status == OUTSIDE_DOMAIN) & (exit_facet >= 0)
+            through_outlet[through_outlet] = self.outlet_facets[exit_facet[through_outlet]]
+            bad = outside & ~through_outlet
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise RunFailure(
+                    f"particle {int(P.gid[k])} at {P.pos[k].tolist()} m left the mesh other than through an "
+                    f"outlet at t = {self.t:.6g} s ({int(bad.sum())} such particle(s))"
+                )
+            self.left_outlet += int(through_outlet.sum())
+            self.dem.remove_particles(through_outlet)
+            P = self.dem.particles
+            n = P.n_owned
+            cell = cell[~through_outlet]
+            ref = ref[~through_outlet]
+        P.cell[:n] = cell
+        self._located = (cell, compute_weights(self.ma, ref, cell))
+        return self._located
+
+    def fluid_state(self):
+        """Drag coefficient K_p (kg/s), gas velocity u@p and pressure-gradient force (N, 3) per owned particle.
+
+        Locates the particles first; the values come from the current gas fields.
+        """
+        cell, w = self.locate_particles()
+        P = self.dem.particles
+        n = P.n_owned
+        u = np.zeros((n, 3))
+        u[:, : self.gdim] = interpolate(self.ma, cell, w, self.gas.u)
+        eps = interpolate(self.ma, cell, w, self.gas.eps)
+        K = np.empty(n)
+        F = np.empty((n, 3))
+        n_orig = P.n_orig[:n].astype(np.float64)
+        d_orig = P.diameter[:n] / np.cbrt(n_orig)
+        drag_kernel(self.law, eps, u, P.vel[:n], d_orig, n_orig, self.rho_g, self.mu_g, K, F)
+        f_p = np.zeros((n, 3))
+        if self.pressure_gradient:
+            gp = interpolate(self.ma, cell, w, self.gas.grad_p)
+            pressure_gradient_kernel(particle_volume(P.diameter[:n]), gp, f_p)
+        return K, u, f_p
+
+    def project(self):
+        """ε^{n+1} (with its floor), K_i [kg/(m^3 s)], K_i v̄_i and the explicit force density at the nodes.
+
+        The explicit force is −Σ_p ω_{p,i} F_P,p / ΔV_i: with the drag (implicit through K_i), the gas receives
+        minus every fluid force the particles receive (seed 001 eq 29).
+        """
+        K, _, f_p = self.fluid_state()  # locates the particles at their new positions, keeps the weights
+        P = self.dem.particles
+        n = P.n_owned
+        g = self.gdim
+        cell, w = self._located
+        values = np.empty((n, 2 + 2 * g))
+        values[:, 0] = particle_volume(P.diameter[:n])
+        values[:, 1] = K
+        values[:, 2 : 2 + g] = K[:, None] * P.vel[:n, :g]
+        values[:, 2 + g :] = -f_p[:, :g]  # seed 001 eq 29: the gas also receives −F_P
+        nodal = neighbour_filter(self.ma, project(self.ma, cell, w, values), self.passes)
+        alpha, eps, self.clipped = solid_fraction(self.ma, np.ascontiguousarray(nodal[:, 0]), self.floor)
+        self.alpha = alpha
+        dens = per_volume(self.ma, nodal[:, 1:])
+        K_i = np.ascontiguousarray(dens[:, 0])
+        Kv_i = np.ascontiguousarray(dens[:, 1 : 1 + g])
+        force_i = np.ascontiguousarray(dens[:, 1 + g :])
+        return eps, K_i, Kv_i, force_i
+
+
+def particle_volume(d: np.ndarray) -> np.ndarray:
+    """Sphere volumes π d³/6 (m^3) of diameters d (m)."""
+    return (math.pi / 6.0) * d**3
+
+
+def depth_of(case) -> float:
+    """2D depth (m) turning areas into volumes: `[mesh] depth`, or one particle diameter if 0."""
+    return case.mesh.depth if case.mesh.depth > 0 else case.particles.diameter
+
+
+def build_solver(case, md, log) -> CoupledSolver:
+    """The coupled solver of a case on mesh `md`: DEM (walls, bed) + gas + coupling arrays."""
+    from febed.dem.driver import build_dem
+    from febed.gas.vans import VANSSolver
+
+    dem = build_dem(case, md, log)
+    gas = VANSSolver.from_case(case, md)
+    return CoupledSolver(case, md, dem, gas, log)
+
+
+def run(case, outdir, log, comm=MPI.COMM_WORLD) -> CoupledSolver:
+    """Run a coupled case (`[run] mode = "cfd-dem"`) to its end time; see `febed.run`."""
+    from febed.run import run_coupled
+
+    return run_coupled(case, outdir, log, comm)
