@@ -198,18 +198,25 @@ class CoupledSolver:
         cell, w = self.locate_particles()
         P = self.dem.particles
         n = P.n_owned
+        g = self.gdim
+        gas = self.gas
+        nodal = np.empty((gas.u.shape[0], 2 * g + 1))  # one interpolation for u, ∇p and ε
+        nodal[:, :g] = gas.u
+        nodal[:, g : 2 * g] = gas.grad_p
+        nodal[:, 2 * g] = gas.eps
+        at_p = interpolate(self.ma, cell, w, nodal)
         u = np.zeros((n, 3))
-        u[:, : self.gdim] = interpolate(self.ma, cell, w, self.gas.u)
-        eps = interpolate(self.ma, cell, w, self.gas.eps)
+        u[:, :g] = at_p[:, :g]
+        eps = np.ascontiguousarray(at_p[:, 2 * g])
         K = np.empty(n)
         F = np.empty((n, 3))
         n_orig = P.n_orig[:n].astype(np.float64)
-        d_orig = P.diameter[:n] / np.cbrt(n_orig)
+        d = P.diameter[:n]
+        d_orig = d if n_orig.max(initial=1.0) == 1.0 else d / np.cbrt(n_orig)
         drag_kernel(self.law, eps, u, P.vel[:n], d_orig, n_orig, self.rho_g, self.mu_g, K, F)
         f_p = np.zeros((n, 3))
         if self.pressure_gradient:
-            gp = interpolate(self.ma, cell, w, self.gas.grad_p)
-            pressure_gradient_kernel(particle_volume(P.diameter[:n]), gp, f_p)
+            pressure_gradient_kernel(particle_volume(d), np.ascontiguousarray(at_p[:, g : 2 * g]), f_p)
         return K, u, f_p
 
     def project(self):
@@ -240,7 +247,7 @@ class CoupledSolver:
 
 def particle_volume(d: np.ndarray) -> np.ndarray:
     """Sphere volumes π d³/6 (m^3) of diameters d (m)."""
-    return (math.pi / 6.0) * d**3
+    return (math.pi / 6.0) * d * d * d
 
 
 def depth_of(case) -> float:
