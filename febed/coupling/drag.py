@@ -152,9 +152,14 @@ def drag_kernel(law, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
     """Per-particle exchange coefficient K (N,) (kg/s) and drag force F (N, 3) (N) for any drag law.
 
     K_p = n_orig,p law(ε_@p, |u_@p - v_p|, d_orig,p, ρ_g, μ_g) and F_p = K_p (u_@p - v_p) (seed 001 eq 20);
-    eps (N,), gas velocity u (N, 3) and particle velocity v (N, 3) at the particles.
+    eps (N,), gas velocity u (N, 3) and particle velocity v (N, 3) at the particles. Particles with ε <= 0
+    (unlocated ones: `interpolate` gives them 0) get K = 0 and F = 0.
     """
     for p in range(eps.size):
+        if not eps[p] > 0.0:
+            K[p] = 0.0
+            F[p, 0] = F[p, 1] = F[p, 2] = 0.0
+            continue
         s0 = u[p, 0] - v[p, 0]
         s1 = u[p, 1] - v[p, 1]
         s2 = u[p, 2] - v[p, 2]

@@ -1,0 +1,151 @@
+"""Coupling steps for the time loop (a sketch for `febed/solver.py`; DESIGN.md "Data flow", seed 001 §2.3-2.4).
+
+Per DEM sub-step (gas fields of step n frozen):
+    `Coupler.locate(x)`            -> cells, weights; particles outside the local mesh reported
+    `Coupler.gas_at_particles(...)`-> u_@p, ε_@p, ∇p_@p (seed 001 eq 28)
+    `Coupler.particle_forces(...)` -> K_p (kg/s), F_D = K_p (u_@p - v_p), F_P = -V_p ∇p_@p (seed 001 eqs 20, 27)
+Once per gas step, after the sub-steps:
+    `Coupler.project_to_gas(...)`  -> α_p, ε (floored), K_i/ΔV_i, (K v)_i/ΔV_i, F_i/ΔV_i (eqs 29-34)
+
+The gas momentum source at node i is then -K_i/ΔV_i u_i + (K v)_i/ΔV_i (implicit in u: the predictor's
+diagonal gets + K_i/ΔV_i) plus the explicit force density F_i/ΔV_i the gas receives, the projection of -F_P
+(seed 001 eq 29 projects -(F_D + F_P); F_D enters through K and K v). Without filtering (0 passes) what the gas gets is
+exactly minus what the particles get (tests/coupling/test_projection.py); with filtering, Σ K_i, Σ (K v)_i and
+Σ F_i are conserved and the drag exchange is exact for a uniform gas velocity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from febed.coupling.drag import drag_forces, get_drag_law, pressure_gradient_kernel
+from febed.coupling.interpolate import interpolate
+from febed.coupling.locate import FOUND, locate
+from febed.coupling.mesh_arrays import NUM_VERTICES, MeshArrays
+from febed.coupling.projection import neighbour_filter, per_volume, project, solid_fraction
+from febed.coupling.weights import compute_weights
+
+
+@dataclass
+class NodalExchange:
+    """Nodal fields for the gas step (local dofs, ghosts current); densities are per unit volume.
+
+    Attributes:
+        alpha: (nd,) solid fraction α_p; eps: (nd,) void fraction 1 - α_p floored; clipped: nodes floored.
+        K: (nd,) momentum-exchange coefficient density K_i/ΔV_i (kg/(m^3 s)).
+        Kv: (nd, gdim) (K v)_i/ΔV_i (N/m^3): the particle-velocity part of the drag exchange.
+        F: (nd, gdim) explicit force density the gas receives (N/m^3): minus the projected particle force,
+            e.g. +V_p ∇p, the reaction to F_P = -V_p ∇p.
+    """
+
+    alpha: np.ndarray
+    eps: np.ndarray
+    clipped: int
+    K: np.ndarray
+    Kv: np.ndarray
+    F: np.ndarray
+
+
+class Coupler:
+    """Per-run coupling state: particle cells/weights buffers and the chosen drag law (arrays grow on demand)."""
+
+    def __init__(self, ma: MeshArrays, drag: str, rho_g: float, mu_g: float, filter_passes: int = 1,
+                 void_floor: float = 0.3, pressure_gradient: bool = True):  # fmt: skip
+        """Set up for mesh arrays `ma`, drag law name, gas density (kg/m^3) and viscosity (Pa s)."""
+        self.ma = ma
+        self.law = get_drag_law(drag)
+        self.rho_g, self.mu_g = float(rho_g), float(mu_g)
+        self.filter_passes = int(filter_passes)
+        self.void_floor = float(void_floor)
+        self.pressure_gradient = bool(pressure_gradient)
+        self.cell = np.full(0, -1, np.int32)
+        self._resize(0)
+
+    def _resize(self, n: int) -> None:
+        nv = NUM_VERTICES[self.ma.kind]
+        old = self.cell
+        self.cell = np.full(n, -1, np.int32)
+        self.cell[: min(n, old.size)] = old[: min(n, old.size)]
+        self.ref = np.zeros((n, 3))
+        self.w = np.zeros((n, nv))
+        self.status = np.zeros(n, np.int8)
+        self.exit_facet = np.full(n, -1, np.int32)
+
+    def reset_cells(self, cell: np.ndarray | None = None) -> None:
+        """Forget (or set) the particles' previous cells, e.g. after particles were added, removed or migrated."""
+        if cell is None:
+            self.cell[:] = -1
+        else:
+            self.cell = np.ascontiguousarray(cell, dtype=np.int32)
+
+    def locate(self, x: np.ndarray) -> np.ndarray:
+        """Locate particles x (N, 3) (m) and compute their weights; returns the indices of those not found.
+
+        `self.status` / `self.exit_facet` classify the misses (OUTSIDE_DOMAIN with the local facet crossed,
+        e.g. the outlet, or OUTSIDE_LOCAL: on another rank). Keep particle order between calls, or call
+        `reset_cells` after reordering: the walk starts from the previous cell of each index.
+        """
+        n = x.shape[0]
+        if n != self.cell.size:
+            self._resize(n)
+        locate(self.ma, x, self.cell, self.ref, self.status, self.exit_facet)
+        compute_weights(self.ma, self.ref, self.cell, self.w)
+        return np.nonzero(self.status != FOUND)[0]
+
+    def gas_at_particles(self, u_nodes: np.ndarray, eps_nodes: np.ndarray, gradp_nodes: np.ndarray):
+        """u_@p (N, 3) m/s, ε_@p (N,), ∇p_@p (N, 3) Pa/m from nodal u (nd, gdim), ε (nd,), ∇p (nd, gdim)."""
+        g = self.ma.gdim
+        n = self.cell.size
+        u = np.zeros((n, 3))
+        gp = np.zeros((n, 3))
+        u[:, :g] = interpolate(self.ma, self.cell, self.w, u_nodes)
+        gp[:, :g] = interpolate(self.ma, self.cell, self.w, gradp_nodes)
+        eps = interpolate(self.ma, self.cell, self.w, eps_nodes)
+        return u, eps, gp
+
+    def particle_forces(self, u_p, eps_p, gradp_p, v, d_orig, n_orig):
+        """K (N,) kg/s, drag F_D (N, 3) N and pressure-gradient force F_P (N, 3) N on each particle.
+
+        K_p = n_orig law(ε, |u - v|, d_orig) (drag of n_orig originals at the parcel velocity);
+        F_P = -V_p ∇p with V_p = n_orig π d_orig^3 / 6 the solid volume represented (seed 001 eq 27).
+        """
+        K, F_d = drag_forces(self.law, eps_p, u_p, v, d_orig, n_orig, self.rho_g, self.mu_g)
+        F_p = np.zeros_like(F_d)
+        if self.pressure_gradient:
+            pressure_gradient_kernel(solid_volume(d_orig, n_orig), gradp_p, F_p)
+        return K, F_d, F_p
+
+    def project_to_gas(self, d_orig, n_orig, K, v, F_explicit=None, owned=None) -> NodalExchange:
+        """Project solid volume, K, K v and an explicit particle force onto the nodes; filter; divide (collective).
+
+        Args:
+            d_orig: (N,) original particle diameters (m).
+            n_orig: (N,) number of original particles each particle represents.
+            K: (N,) momentum-exchange coefficients (kg/s) from `particle_forces`.
+            v: (N, 3) particle velocities (m/s).
+            F_explicit: (N, 3) N force the particles receive that the gas must return (e.g. F_P), or None.
+            owned: (N,) bool, particles this rank owns (ghost particles are not projected); None = all.
+        """
+        ma = self.ma
+        g = ma.gdim
+        cell = self.cell if owned is None else np.where(owned, self.cell, -1).astype(np.int32)
+        n = cell.size
+        cols = 2 + g + (g if F_explicit is not None else 0)
+        vals = np.empty((n, cols))
+        vals[:, 0] = solid_volume(d_orig, n_orig)
+        vals[:, 1] = K
+        vals[:, 2 : 2 + g] = K[:, None] * v[:, :g]
+        if F_explicit is not None:
+            vals[:, 2 + g :] = -F_explicit[:, :g]  # the gas receives minus the particle force (eq 29)
+        nodal = neighbour_filter(ma, project(ma, cell, self.w, vals), self.filter_passes)
+        alpha, eps, clipped = solid_fraction(ma, np.ascontiguousarray(nodal[:, 0]), self.void_floor)
+        dens = per_volume(ma, nodal)
+        F = dens[:, 2 + g :] if F_explicit is not None else np.zeros((ma.num_dofs, g))
+        return NodalExchange(alpha, eps, clipped, np.ascontiguousarray(dens[:, 1]), dens[:, 2 : 2 + g].copy(), F.copy())
+
+
+def solid_volume(d_orig: np.ndarray, n_orig: np.ndarray) -> np.ndarray:
+    """Solid volume each particle represents, n_orig π d_orig^3 / 6 (m^3)."""
+    return n_orig * (np.pi / 6.0) * d_orig**3
