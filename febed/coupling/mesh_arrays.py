@@ -347,3 +347,16 @@ def extract_mesh_arrays(mesh, Q=None, depth: float = 1.0) -> MeshArrays:
     )
     ma.accumulate(ma.node_volume)
     return ma
+
+
+def facet_tag_lookup(mesh, facet_tags) -> np.ndarray:
+    """Tag value of every local facet (-1 if untagged), to name the facet a particle left through.
+
+    Use with `locate`: `lookup[exit_facet[p]]` for particles with status OUTSIDE_DOMAIN (e.g. the outlet id).
+    """
+    tdim = mesh.topology.dim
+    mesh.topology.create_entities(tdim - 1)
+    imap = mesh.topology.index_map(tdim - 1)
+    lookup = np.full(imap.size_local + imap.num_ghosts, -1, dtype=np.int32)
+    lookup[facet_tags.indices] = facet_tags.values
+    return lookup

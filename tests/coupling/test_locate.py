@@ -70,3 +70,21 @@ def test_locate_mpi_each_point_owned_once(name):
     assert anywhere.sum() > 0.9 * len(pts)
     if comm.size > 1:
         assert np.all(np.isin(status[cell < 0], [OUTSIDE_LOCAL, OUTSIDE_DOMAIN]))
+
+
+def test_exit_facet_names_the_boundary(tmp_path):
+    """Particles leaving the seed-000 bed through the top are reported with the outlet tag."""
+    from febed.coupling.mesh_arrays import extract_mesh_arrays, facet_tag_lookup
+    from febed.meshing import build_msh, load_msh
+
+    md = load_msh(build_msh("wang2d", out=tmp_path / "w.msh"), comm=MPI.COMM_SELF)
+    ma = extract_mesh_arrays(md.mesh, depth=1.5e-3)
+    lookup = facet_tag_lookup(md.mesh, md.facet_tags)
+    x = np.array([[0.045, 0.49, 0.0], [0.01, 0.2, 0.0], [0.03, 0.01, 0.0]])
+    cell, _, status, _, _ = locate(ma, x, np.full(3, -1, np.int32))
+    assert np.all(status == FOUND)
+    x[:, 1] += [0.02, 0.0, -0.02]  # through the outlet, stays inside, through the inlet
+    x[1, 0] = -0.003  # through the left wall
+    cell, _, status, exit_facet, missing = locate(ma, x, cell)
+    assert missing == 3 and np.all(status == OUTSIDE_DOMAIN)
+    assert list(lookup[exit_facet]) == [md.tag_id("outlet"), md.tag_id("walls"), md.tag_id("inlet")]
