@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from febed.coupling.drag import drag_forces, get_drag_law, pressure_gradient_kernel
+from febed.coupling.drag import drag_forces, gas_forces_kernel, get_drag_law, pressure_gradient_kernel
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.mesh_arrays import NUM_VERTICES, MeshArrays
@@ -116,6 +116,22 @@ class Coupler:
         if self.pressure_gradient:
             pressure_gradient_kernel(solid_volume(d_orig, n_orig), gradp_p, F_p)
         return K, F_d, F_p
+
+    def forces(self, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig):
+        """Fused `gas_at_particles` + `particle_forces` (one pass; the per-sub-step hot path).
+
+        Returns K (N,) kg/s, F_D (N, 3) N, F_P (N, 3) N (zero if the pressure-gradient force is off), ε_@p (N,).
+        """
+        n = self.cell.size
+        K = np.empty(n)
+        F_d = np.empty((n, 3))
+        F_p = np.empty((n, 3))
+        eps_p = np.empty(n)
+        gas_forces_kernel(
+            self.law, self.ma.cell_dofs, self.cell, self.w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig,
+            self.rho_g, self.mu_g, self.pressure_gradient, K, F_d, F_p, eps_p,
+        )  # fmt: skip
+        return K, F_d, F_p, eps_p
 
     def project_to_gas(self, d_orig, n_orig, K, v, F_explicit=None, owned=None) -> NodalExchange:
         """Project solid volume, K, K v and an explicit particle force onto the nodes; filter; divide (collective).
