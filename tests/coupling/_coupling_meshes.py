@@ -55,9 +55,9 @@ def _sheared(kind: str):
     return m
 
 
-def _distorted(kind: str):
+def _distorted(kind: str, comm=None):
     """Structured quads/hexes (non-affine after distortion) or simplices on a smoothly distorted box."""
-    comm = MPI.COMM_WORLD
+    comm = comm or MPI.COMM_WORLD
     ct = getattr(mesh.CellType, kind)
     if kind in ("triangle", "quadrilateral"):
         m = mesh.create_rectangle(comm, [np.array([0.0, 0.0]), np.array([0.09, 0.12])], [9, 12], ct)

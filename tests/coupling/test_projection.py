@@ -171,3 +171,31 @@ def test_bad_input_is_rejected():
         project(ma, np.zeros(3, np.int32), np.zeros((3, 4)), np.zeros(4))
     with pytest.raises(ValueError, match="x"):
         locate(ma, np.zeros((3, 2)), np.zeros(3, np.int32))
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("name", ["hex", "tet-distorted"])
+def test_partitioned_result_equals_serial(name):
+    """Projection + 3 filter passes on the distributed mesh give the serial nodal values at every node."""
+    m, ma = mesh_and_arrays(name)
+    comm = ma.comm
+    n = 1500
+    pts, cell, w, mine = _my_particles(ma, n, seed=31)
+    vol = np.random.default_rng(32).uniform(1e-10, 1e-9, n)
+    alpha = neighbour_filter(ma, project(ma, cell, w, vol), 3) / ma.node_volume
+    owned = slice(0, ma.num_owned_dofs)
+    xs = comm.gather(ma.x_dofs[owned], root=0)
+    vals = comm.gather(alpha[owned], root=0)
+    if comm.rank == 0:
+        from _coupling_meshes import _distorted
+
+        ms = _distorted({"hex": "hexahedron", "tet-distorted": "tetrahedron"}[name], MPI.COMM_SELF)
+        mas = extract_mesh_arrays(ms)
+        cs, rs, _, _, _ = locate(mas, pts, np.full(n, -1, np.int32))
+        ws = compute_weights(mas, rs, cs)
+        ref = neighbour_filter(mas, project(mas, cs, ws, vol), 3) / mas.node_volume
+        xs, vals = np.concatenate(xs), np.concatenate(vals)
+        assert len(vals) == mas.num_dofs
+        key = lambda x: np.lexsort(np.round(x / 1e-9).T)  # noqa: E731
+        assert np.allclose(xs[key(xs)], mas.x_dofs[key(mas.x_dofs)], atol=1e-12, rtol=0)
+        assert np.max(np.abs(vals[key(xs)] - ref[key(mas.x_dofs)])) < 1e-12 * ref.max()
