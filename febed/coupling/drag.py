@@ -259,3 +259,28 @@ def gas_forces_kernel(
         F_p[p, 0] = -vol * g0
         F_p[p, 1] = -vol * g1
         F_p[p, 2] = -vol * g2
+
+
+def terminal_velocity(law, d: float, rho_p: float, rho_g: float, mu_g: float, g: float = 9.81, eps: float = 1.0):
+    """Settling speed (m/s) of one sphere in still gas: K(v_t) v_t = (ρ_p - ρ_g) V g (drag = weight - buoyancy).
+
+    Buoyancy is the pressure-gradient force -V ∇p of the hydrostatic gas (seed 001 eq 27). `law` is a name or
+    a registered law; solved by bisection to 1e-12 relative. Reference value for the settling check of issue 5.
+    """
+    if isinstance(law, str):
+        law = get_drag_law(law)
+    if not (d > 0 and rho_p > rho_g > 0 and mu_g > 0 and g > 0 and 0 < eps <= 1):
+        raise ValueError("d, rho_p, rho_g, mu_g, g, eps: need d > 0, rho_p > rho_g > 0, mu_g > 0, g > 0, 0 < eps <= 1")
+    net = (rho_p - rho_g) * math.pi * d**3 / 6.0 * g
+    lo, hi = 0.0, 1.0
+    while law(eps, hi, d, rho_g, mu_g) * hi < net:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if law(eps, mid, d, rho_g, mu_g) * mid < net:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-12 * hi:
+            break
+    return 0.5 * (lo + hi)

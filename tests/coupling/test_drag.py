@@ -164,3 +164,20 @@ def test_pressure_gradient_force():
     F = np.empty((2, 3))
     pressure_gradient_kernel(vol, grad, F)
     assert np.allclose(F, [[0.0, 1.2e-5, 0.0], [-6e-8, -1e-8, 0.0]], rtol=1e-14, atol=0)
+
+
+def test_terminal_velocity():
+    from febed.coupling.drag import terminal_velocity
+
+    d, rho_p = 1e-4, 2500.0
+    stokes = (rho_p - RHO_G) * 9.81 * d**2 / (18.0 * MU_G)
+    assert terminal_velocity("stokes", d, rho_p, RHO_G, MU_G) == pytest.approx(stokes, rel=1e-10)
+    # Schiller-Naumann at 1.5 mm (Re ~ 500): C_D(Re_t) ρ_g v_t² π d²/8 = (ρ_p - ρ_g) g π d³/6 by hand
+    d = 1.5e-3
+    vt = terminal_velocity("schiller-naumann", d, 1150.0, RHO_G, MU_G)
+    re = RHO_G * vt * d / MU_G
+    cd = 24.0 / re * (1.0 + 0.15 * re**0.687)
+    drag = 0.5 * cd * RHO_G * vt**2 * math.pi * d**2 / 4.0
+    weight = (1150.0 - RHO_G) * 9.81 * math.pi * d**3 / 6.0
+    assert drag == pytest.approx(weight, rel=1e-9)
+    assert 100.0 < re < 1000.0
