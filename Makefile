@@ -29,10 +29,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --no-build-isolation -e '.[dev]'
 	@touch $(STAMP)
 
-# The default demo; later issues replace it with the coupled seed-000 bed.
-DEMO := demos/meshes/demo_meshes.py
+# The default demo: the seed-000 2D bubbling bed, 0.3 s of it (demos/wang2d/, a few minutes).
 demo: setup
-	$(PY) $(DEMO)
+	$(PY) demos/wang2d/demo_wang2d.py --end-time 0.3
 
 test: setup lint test-serial test-mpi
 
