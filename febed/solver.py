@@ -36,12 +36,9 @@ from mpi4py import MPI
 
 import numpy as np
 
-from febed.coupling.drag import drag_kernel, get_drag_law, pressure_gradient_kernel
-from febed.coupling.interpolate import interpolate
-from febed.coupling.locate import FOUND, OUTSIDE_DOMAIN, locate
+from febed.coupling.exchange import Coupler
+from febed.coupling.locate import OUTSIDE_DOMAIN
 from febed.coupling.mesh_arrays import extract_mesh_arrays
-from febed.coupling.projection import neighbour_filter, per_volume, project, solid_fraction
-from febed.coupling.weights import compute_weights
 
 
 class RunFailure(RuntimeError):
@@ -87,13 +84,12 @@ class CoupledSolver:
         self.gdim = md.gdim
         self.depth = depth_of(case) if md.gdim == 2 else 1.0
         self.ma = extract_mesh_arrays(md.mesh, gas.Q, depth=self.depth)
-        self.law = get_drag_law(case.coupling.drag)
-        self.rho_g = case.gas.density
-        self.mu_g = case.gas.viscosity
-        self.pressure_gradient = case.coupling.pressure_gradient
-        self.floor = case.coupling.void_fraction_floor
+        cp = case.coupling
+        self.coupler = Coupler(
+            self.ma, cp.drag, case.gas.density, case.gas.viscosity, cp.filter_passes, cp.void_fraction_floor,
+            cp.pressure_gradient,
+        )  # fmt: skip
         self.fixed = case.particles.fixed
-        self.passes = case.coupling.filter_passes
         self.outlet_facets = self._outlet_facet_mask()
         self.t = 0.0
         self.steps = 0
@@ -163,60 +159,51 @@ class CoupledSolver:
                 K, u, f_p, gid = K[perm], u[perm], f_p[perm], gid[perm]
         self.timers.coupling += time.perf_counter() - t0
 
-    def locate_particles(self):
-        """Locate the owned particles (walk from the previous cell); remove outlet leavers; return (cell, w)."""
+    def locate_particles(self) -> None:
+        """Locate the owned particles (walk from their previous cell); remove those that left by an outlet."""
         P = self.dem.particles
         n = P.n_owned
-        cell = np.ascontiguousarray(P.cell[:n], dtype=np.int32)
-        cell, ref, status, exit_facet, missing = locate(self.ma, P.pos[:n], cell)
-        if missing:
-            outside = status != FOUND
-            through_outlet = outside & (status == OUTSIDE_DOMAIN) & (exit_facet >= 0)
-            through_outlet[through_outlet] = self.outlet_facets[exit_facet[through_outlet]]
-            bad = outside & ~through_outlet
-            if bad.any():
-                k = int(np.flatnonzero(bad)[0])
+        c = self.coupler
+        c.reset_cells(P.cell[:n])  # the DEM may have reordered its rows: cells travel with the particles
+        missing = c.locate(P.pos[:n])
+        if missing.size:
+            facet = c.exit_facet[missing]
+            by_outlet = (c.status[missing] == OUTSIDE_DOMAIN) & (facet >= 0)
+            by_outlet[by_outlet] = self.outlet_facets[facet[by_outlet]]
+            if not by_outlet.all():
+                k = int(missing[~by_outlet][0])
                 raise RunFailure(
                     f"particle {int(P.gid[k])} at {P.pos[k].tolist()} m left the mesh other than through an "
-                    f"outlet at t = {self.t:.6g} s ({int(bad.sum())} such particle(s))"
+                    f"outlet at t = {self.t:.6g} s ({int((~by_outlet).sum())} such particle(s))"
                 )
-            self.left_outlet += int(through_outlet.sum())
-            self.dem.remove_particles(through_outlet)
-            P = self.dem.particles
+            keep = np.ones(n, dtype=bool)
+            keep[missing] = False
+            self.left_outlet += int(missing.size)
+            self.dem.remove_particles(~keep)
             n = P.n_owned
-            cell = cell[~through_outlet]
-            ref = ref[~through_outlet]
-        P.cell[:n] = cell
-        self._located = (cell, compute_weights(self.ma, ref, cell))
-        return self._located
+            c.reset_cells(c.cell[keep])
+            c.locate(P.pos[:n])  # compacts the coupler's arrays; every cell is known, so no search
+        P.cell[:n] = c.cell
+
+    def _originals(self):
+        """Diameter (m) and count of the original particles each particle stands for."""
+        P = self.dem.particles
+        n = P.n_owned
+        n_orig = P.n_orig[:n].astype(np.float64)
+        d = P.diameter[:n]
+        return (d if n_orig.max(initial=1.0) == 1.0 else d / np.cbrt(n_orig)), n_orig
 
     def fluid_state(self):
         """Drag coefficient K_p (kg/s), gas velocity u@p and pressure-gradient force (N, 3) per owned particle.
 
         Locates the particles first; the values come from the current gas fields.
         """
-        cell, w = self.locate_particles()
-        P = self.dem.particles
-        n = P.n_owned
-        g = self.gdim
+        self.locate_particles()
         gas = self.gas
-        nodal = np.empty((gas.u.shape[0], 2 * g + 1))  # one interpolation for u, ∇p and ε
-        nodal[:, :g] = gas.u
-        nodal[:, g : 2 * g] = gas.grad_p
-        nodal[:, 2 * g] = gas.eps
-        at_p = interpolate(self.ma, cell, w, nodal)
-        u = np.zeros((n, 3))
-        u[:, :g] = at_p[:, :g]
-        eps = np.ascontiguousarray(at_p[:, 2 * g])
-        K = np.empty(n)
-        F = np.empty((n, 3))
-        n_orig = P.n_orig[:n].astype(np.float64)
-        d = P.diameter[:n]
-        d_orig = d if n_orig.max(initial=1.0) == 1.0 else d / np.cbrt(n_orig)
-        drag_kernel(self.law, eps, u, P.vel[:n], d_orig, n_orig, self.rho_g, self.mu_g, K, F)
-        f_p = np.zeros((n, 3))
-        if self.pressure_gradient:
-            pressure_gradient_kernel(particle_volume(d), np.ascontiguousarray(at_p[:, g : 2 * g]), f_p)
+        c = self.coupler
+        u, eps, gp = c.gas_at_particles(gas.u, gas.eps, gas.grad_p)
+        d_orig, n_orig = self._originals()
+        K, _, f_p = c.particle_forces(u, eps, gp, self.dem.particles.vel[: self.dem.particles.n_owned], d_orig, n_orig)
         return K, u, f_p
 
     def project(self):
@@ -225,24 +212,12 @@ class CoupledSolver:
         The explicit force is −Σ_p ω_{p,i} F_P,p / ΔV_i: with the drag (implicit through K_i), the gas receives
         minus every fluid force the particles receive (seed 001 eq 29).
         """
-        K, _, f_p = self.fluid_state()  # locates the particles at their new positions, keeps the weights
+        K, _, f_p = self.fluid_state()  # locates the particles at their new positions
         P = self.dem.particles
-        n = P.n_owned
-        g = self.gdim
-        cell, w = self._located
-        values = np.empty((n, 2 + 2 * g))
-        values[:, 0] = particle_volume(P.diameter[:n])
-        values[:, 1] = K
-        values[:, 2 : 2 + g] = K[:, None] * P.vel[:n, :g]
-        values[:, 2 + g :] = -f_p[:, :g]  # seed 001 eq 29: the gas also receives −F_P
-        nodal = neighbour_filter(self.ma, project(self.ma, cell, w, values), self.passes)
-        alpha, eps, self.clipped = solid_fraction(self.ma, np.ascontiguousarray(nodal[:, 0]), self.floor)
-        self.alpha = alpha
-        dens = per_volume(self.ma, nodal[:, 1:])
-        K_i = np.ascontiguousarray(dens[:, 0])
-        Kv_i = np.ascontiguousarray(dens[:, 1 : 1 + g])
-        force_i = np.ascontiguousarray(dens[:, 1 + g :])
-        return eps, K_i, Kv_i, force_i
+        d_orig, n_orig = self._originals()
+        x = self.coupler.project_to_gas(d_orig, n_orig, K, P.vel[: P.n_owned], F_explicit=f_p)
+        self.alpha, self.clipped = x.alpha, x.clipped
+        return x.eps, x.K, np.ascontiguousarray(x.Kv), np.ascontiguousarray(x.F)
 
 
 def particle_volume(d: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ import logging
 import math
 
 import numpy as np
+import pytest
 
 from febed.case import _merge, load_case
 from febed.dem.driver import walls_from_mesh
@@ -63,7 +64,7 @@ def test_momentum_exchange_is_newtons_third_law(tmp_path):
     assert np.abs(received).max() > 1e-6  # a real exchange
     assert np.allclose(given, received, rtol=1e-12, atol=1e-12 * np.abs(received).max())
     for passes in (1, 3):  # filtered: the totals of K and K v are still conserved exactly
-        s.passes = passes
+        s.coupler.filter_passes = passes
         _, K_i, Kv_i, _ = s.project()
         assert math.isclose((dV * K_i).sum(), K.sum(), rel_tol=1e-12)
         assert np.allclose((dV[:, None] * Kv_i).sum(axis=0), (K[:, None] * v).sum(axis=0), rtol=1e-11, atol=1e-18)
@@ -129,3 +130,22 @@ def test_fixed_bed_pressure_drop_is_ergun(tmp_path):
     ergun = 150 * mu * U * (1 - eps) ** 2 / (eps**3 * d**2) + 1.75 * rho_g * U**2 * (1 - eps) / (eps**3 * d)
     assert abs(grad / ergun - 1) < 0.03, (grad, ergun)
     assert np.array_equal(s.dem.particles.vel, np.zeros_like(s.dem.particles.vel))  # the bed stayed fixed
+
+
+def test_outlet_removes_particles_and_a_leak_elsewhere_stops_the_run(tmp_path):
+    from febed.solver import RunFailure
+
+    case = box_case(tmp_path, (0.01, 0.01, 0.02), 0.0025, contact={"stiffness": 10.0})
+    s = coupled(case, tmp_path, [[0.005, 0.005, 0.019], [0.005, 0.005, 0.005]], 1e-3, 2500.0)
+    s.dem.particles.vel[0] = [0.0, 0.0, 2.0]  # heading for the outlet
+    while s.t < 0.01:
+        s.step()
+    assert s.left_outlet == 1 and s.dem.particles.n_owned == 1
+    assert s.dem.particles.gid[0] == 1  # the other one is still there
+    # walls that do not hold particles: a particle crossing them is an error naming it
+    leaky = box_case(tmp_path, (0.01, 0.01, 0.02), 0.0025, gas={"boundary": {"walls": {"particles": False}}})
+    s = coupled(leaky, tmp_path, [[0.0095, 0.005, 0.01]], 1e-3, 2500.0)
+    s.dem.particles.vel[0] = [2.0, 0.0, 0.0]
+    with pytest.raises(RunFailure, match=r"particle 0 at .* left the mesh other than through an outlet"):
+        while s.t < 0.01:
+            s.step()

@@ -77,8 +77,10 @@ class Coupler:
         """Forget (or set) the particles' previous cells, e.g. after particles were added, removed or migrated."""
         if cell is None:
             self.cell[:] = -1
-        else:
-            self.cell = np.ascontiguousarray(cell, dtype=np.int32)
+            return
+        if cell.size != self.cell.size:
+            self._resize(cell.size)  # the per-particle buffers follow the particle count
+        self.cell[:] = cell
 
     def locate(self, x: np.ndarray) -> np.ndarray:
         """Locate particles x (N, 3) (m) and compute their weights; returns the indices of those not found.

@@ -125,7 +125,7 @@ def solid_fraction(ma: MeshArrays, nodal_volume: np.ndarray, floor: float = 0.0)
     if nodal_volume.shape != (ma.num_dofs,):
         raise ValueError(f"nodal_volume: must have shape ({ma.num_dofs},), got {nodal_volume.shape}")
     alpha = nodal_volume / ma.node_volume
-    eps = 1.0 - alpha
+    eps = np.minimum(1.0 - alpha, 1.0)  # round-off in the filter must not give ε > 1
     low = eps < floor
     clipped = int(np.count_nonzero(low[: ma.num_owned_dofs]))
     eps[low] = floor
