@@ -126,10 +126,12 @@ def rk2_steps(
     worst = 0.0
     h = 0.5 * dt
     for s in range(n_steps):
-        # forces at t^n; the tangential elongation is not advanced (dt_eval = 0), its update goes to scratch
+        # forces at t^n; the tangential elongation is not advanced (dt_eval = 0), its update goes to scratch;
+        # the regularised Coulomb cap uses the whole step (with dt/2 the slip would stop at the midpoint and the
+        # second stage would see no friction at all)
         compute_forces(
             pos, vel, omega, diameter, mass, inertia, n_owned, n, start, nbr, hist, htmp, wstart, wid, whist, whtmp,
-            plane_p, plane_n, facets, nv, pp, pw, 0.0, h, rotation, gvec, force, torque,
+            plane_p, plane_n, facets, nv, pp, pw, 0.0, dt, rotation, gvec, force, torque,
         )  # fmt: skip
         _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0)
         w = compute_forces(

@@ -115,3 +115,19 @@ def test_registries_and_bad_input():
     assert dem.critical_time() == pytest.approx(contact_time(KN, 0.9, M / 2), rel=1e-12)
     assert dem.dt == pytest.approx(dem.critical_time() / 6)
     assert law.params(KN, 0.9, 0.3).mu == 0.3
+
+
+@pytest.mark.parametrize("integrator", ["rk2", "verlet"])
+def test_regularised_coulomb_stops_but_never_reverses_slip(integrator):
+    """`linear`: a slow slide under strong friction decays (by half per step: the cap m |u_t| / dt is applied over
+    dt from the predicted/midpoint slip); the slip never changes sign."""
+    p = DEMParams(contact_model="linear", kn=KN, friction_pw=1.0, restitution_pw=0.5, rotation=False, gravity=G,
+                  integrator=integrator)  # fmt: skip
+    dem = DEM(p, walls=Walls(planes=[((0, 0, 0), (0, 0, 1))]))
+    dem.add_particles(np.array([[0, 0, D / 2 - M * G / KN]]), D, RHO, vel=np.array([[1e-5, 0, 0]]))
+    vs = []
+    for _ in range(20):
+        dem.advance(1)
+        vs.append(dem.particles.vel[0, 0])
+    assert min(vs) >= 0.0
+    assert vs[-1] < 1e-5 * 2.0**-15
