@@ -48,19 +48,67 @@ def assemble_nodal(form) -> np.ndarray:
     return out
 
 
-def _owned_csr(A: PETSc.Mat, imap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Owned rows of an assembled matrix as CSR with local (owned + ghost) column indices."""
+def _owned_csr(A: PETSc.Mat, imap, extra: np.ndarray | None):
+    """Owned rows of an assembled matrix as CSR with local column indices; the extra (non-ghost) columns.
+
+    Columns owned here or ghosted by the mesh keep their local index; columns of nodes the mesh does not
+    ghost (cells touching an owned node only at a vertex/edge, on another rank) are numbered after the
+    ghosts, n_local + k, k their rank in `extra` (sorted global indices; computed on the first call).
+    """
     indptr, cols, vals = A.getValuesCSR()
     r0, r1 = imap.local_range
+    n_local = imap.size_local + imap.num_ghosts
     ghosts = np.asarray(imap.ghosts, dtype=np.int64)
     order = np.argsort(ghosts)
+    sorted_ghosts = ghosts[order]
     cols = np.asarray(cols, dtype=np.int64)
     local = cols - r0
-    off = (cols < r0) | (cols >= r1)
-    if off.any():
-        pos = np.searchsorted(ghosts[order], cols[off])
-        local[off] = imap.size_local + order[pos]
-    return np.asarray(indptr, dtype=np.int64), local.astype(np.int32), np.asarray(vals, dtype=np.float64)
+    off = np.flatnonzero((cols < r0) | (cols >= r1))
+    pos = np.searchsorted(sorted_ghosts, cols[off])
+    pos_c = np.minimum(pos, max(sorted_ghosts.size - 1, 0))
+    found = (pos < sorted_ghosts.size) & (sorted_ghosts[pos_c] == cols[off]) if sorted_ghosts.size else pos < 0
+    local[off[found]] = imap.size_local + order[pos[found]]
+    missing = cols[off[~found]]
+    if extra is None:
+        extra = np.unique(missing)
+    local[off[~found]] = n_local + np.searchsorted(extra, missing)
+    return np.asarray(indptr, dtype=np.int64), local.astype(np.int32), np.asarray(vals, dtype=np.float64), extra
+
+
+class GhostExtension:
+    """Nodal arrays extended by the values at the extra columns of the owned rows (see `_owned_csr`).
+
+    The mesh ghosts only the cells sharing a facet with this rank's cells, so an owned node can be
+    connected to nodes that are neither owned nor ghosts here. Their values are fetched with one PETSc
+    scatter per array (collective; nothing to do, and no copy, when no rank has extra columns).
+    """
+
+    def __init__(self, imap, extra: np.ndarray, comm):
+        self.n_local = imap.size_local + imap.num_ghosts
+        self.extra = np.asarray(extra, dtype=np.int64)
+        self.n_extra = self.extra.size
+        self.active = comm.allreduce(self.n_extra, op=MPI.MAX) > 0
+        self._scatters: dict[int, tuple] = {}
+        self._buffers: dict[str, np.ndarray] = {}
+
+    def extend(self, name: str, vec: PETSc.Vec, local: np.ndarray) -> np.ndarray:
+        """Array (n_local + n_extra, bs) of `local` (the ghosted values of `vec`) followed by the extra values."""
+        bs = vec.getBlockSize()
+        if not self.active:
+            return local.reshape(self.n_local, bs) if bs > 1 else local
+        if bs not in self._scatters:
+            iset = PETSc.IS().createBlock(bs, self.extra.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+            target = PETSc.Vec().createSeq(self.n_extra * bs, comm=PETSc.COMM_SELF)
+            self._scatters[bs] = (PETSc.Scatter().create(vec, iset, target, None), target)
+        scatter, target = self._scatters[bs]
+        scatter.scatter(vec, target, addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        key = f"{name}/{bs}"
+        if key not in self._buffers:
+            self._buffers[key] = np.empty((self.n_local + self.n_extra) * bs)
+        buf = self._buffers[key]
+        buf[: self.n_local * bs] = local
+        buf[self.n_local * bs :] = target.array
+        return buf.reshape(-1, bs) if bs > 1 else buf
 
 
 @dataclass
@@ -77,6 +125,12 @@ class NodalOperators:
     mass: np.ndarray  # (n_local,) ∫ φ_i dx [m^3]
     bnormal: np.ndarray  # (n_local, gdim) ∫_∂Ω φ_i n ds [m^2]
     width: np.ndarray  # (n_local,) filter width / cell size at the node [m]
+    extension: GhostExtension  # values at the extra columns (nodes the mesh does not ghost)
+
+    @property
+    def n_ext(self) -> int:
+        """Rows of an extended nodal array: owned + ghost + extra column nodes."""
+        return self.n_local + self.extension.n_extra
 
     @property
     def gdim(self) -> int:
@@ -84,11 +138,11 @@ class NodalOperators:
         return self.grad.shape[1]
 
     def stiffness_rows(self, rows: np.ndarray):
-        """The rows `rows` (owned) of the unmodified stiffness ∫ ∇φ_i·∇φ_j dx as a scipy CSR (n_rows, n_local)."""
+        """The rows `rows` (owned) of the unmodified stiffness ∫ ∇φ_i·∇φ_j dx as a scipy CSR (n_rows, n_ext)."""
         import scipy.sparse
 
         lap = self.tens[:, : self.gdim].sum(axis=1)
-        full = scipy.sparse.csr_matrix((lap, self.indices, self.indptr), shape=(self.n_owned, self.n_local))
+        full = scipy.sparse.csr_matrix((lap, self.indices, self.indptr), shape=(self.n_owned, self.n_ext))
         return full[np.asarray(rows, dtype=np.int64)]
 
 
@@ -101,11 +155,11 @@ def build_operators(mesh) -> NodalOperators:
     forms = [v * w.dx(d) for d in range(gdim)]
     forms += [v.dx(d) * w.dx(d) for d in range(gdim)]
     forms += [v.dx(d) * w.dx(e) + v.dx(e) * w.dx(d) for d in range(gdim) for e in range(d + 1, gdim)]
-    pattern, coefs = None, []
+    pattern, coefs, extra = None, [], None
     for a in forms:
         A = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(a * ufl.dx))
         A.assemble()
-        indptr, indices, vals = _owned_csr(A, imap)
+        indptr, indices, vals, extra = _owned_csr(A, imap, extra)
         A.destroy()
         if pattern is None:
             pattern = (indptr, indices)
@@ -133,6 +187,7 @@ def build_operators(mesh) -> NodalOperators:
         mass=mass,
         bnormal=bnormal,
         width=width,
+        extension=GhostExtension(imap, extra, mesh.comm),
     )
 
 

@@ -168,7 +168,7 @@ class VANSSolver:
         self._p.x.array[:] = float(np.mean(self.bc.pressure_values)) if self.bc.pressure_values.size else 0.0
         self._p.x.array[self.bc.pressure_dofs] = self.bc.pressure_values
         self._p.x.scatter_forward()
-        kernels.gradient(self.ops.indptr, self.ops.indices, self.ops.grad, self._p.x.array, self.gp_owned)
+        kernels.gradient(self.ops.indptr, self.ops.indices, self.ops.grad, self._ext("p", self._p), self.gp_owned)
         self.bc.apply_velocity(self.q, 0.0)
         self._q.x.scatter_forward()
         self._update_u()
@@ -259,7 +259,7 @@ class VANSSolver:
         """Set the pressure field (initial condition) [Pa]; outlet nodes keep their prescribed value."""
         self.p[:] = self._local(p, "p", scalar_ok=True)
         self.p[self.bc.pressure_dofs] = self.bc.pressure_values
-        kernels.gradient(self.ops.indptr, self.ops.indices, self.ops.grad, self.p, self.gp_owned)
+        kernels.gradient(self.ops.indptr, self.ops.indices, self.ops.grad, self._ext("p", self._p), self.gp_owned)
         self.grad_p[: self.n_owned] = self.gp_owned / self.ops.mass[: self.n_owned, None]
         self._gradp.x.scatter_forward()
 
@@ -305,23 +305,28 @@ class VANSSolver:
     def _update_u(self) -> None:
         self.u[:] = self.q / self.eps[:, None]
 
+    def _ext(self, name: str, f: dolfinx.fem.Function) -> np.ndarray:
+        """Values of a Function at the owned, ghost and extra column nodes of the sweeps (up to date ghosts)."""
+        return self.ops.extension.extend(name, f.vector, f.x.array)
+
     # ---------------------------------------------------------------------------------- time step
     def effective_viscosity(self) -> np.ndarray:
         """Effective dynamic viscosity μ + ρ ν_t at the nodes (n_local,) [Pa s] (LES: Smagorinsky)."""
-        return self._viscosity()
+        return self._viscosity()[: self.n_local].copy()
 
     def _viscosity(self) -> np.ndarray:
-        """Effective dynamic viscosity μ + ρ ν_t at the nodes [Pa s] (computed once per time level)."""
+        """μ + ρ ν_t [Pa s] over the extended nodes (computed once per time level)."""
         if self._mu_cache[0] == self.t:
             return self._mu_cache[1]
-        par = self.params
-        mu = np.full(self.n_local, par.viscosity)
+        par, ops = self.params, self.ops
         if par.les == "smagorinsky":
             s = np.zeros(self.n_owned)
-            kernels.strain_rate_norm(self.ops.indptr, self.ops.indices, self.ops.grad, self.u, self.ops.mass, s)
-            self._nu.x.array[: self.n_owned] = (par.smagorinsky_cs * self.ops.width[: self.n_owned]) ** 2 * s
+            kernels.strain_rate_norm(ops.indptr, ops.indices, ops.grad, self._ext("u", self._u), ops.mass, s)
+            self._nu.x.array[: self.n_owned] = (par.smagorinsky_cs * ops.width[: self.n_owned]) ** 2 * s
             self._nu.x.scatter_forward()
-            mu += par.density * self._nu.x.array
+            mu = par.viscosity + par.density * self._ext("nu_t", self._nu)
+        else:
+            mu = np.full(ops.n_ext, par.viscosity)
         self._mu_cache = (self.t, mu)
         return mu
 
@@ -341,8 +346,9 @@ class VANSSolver:
             rate_f = self.params.viscosity / self.params.density / self._h2_min
             return self.comm.allreduce(rate_c, op=MPI.MAX), rate_f
         rate_f = float(np.max(mu[:n] / self.ops.width[:n] ** 2, initial=0.0)) / self.params.density
-        rate_c, rate_f = self.comm.allreduce(np.array([rate_c, rate_f]), op=MPI.MAX)
-        return float(rate_c), float(rate_f)
+        buf = np.array([rate_c, rate_f])
+        self.comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.MAX)
+        return float(buf[0]), float(buf[1])
 
     # ------------------------------------------------------------------------------------------- step
     def step(self, dt: float, eps=None, K=None, Kv=None, force=None) -> StepInfo:
@@ -351,7 +357,7 @@ class VANSSolver:
             raise ValueError(f"dt must be > 0, got {dt!r}")
         clock = {}
         t0 = time.perf_counter()
-        eps_old = self.eps.copy()
+        eps_old = self._ext("eps", self._eps).copy()
         if eps is not None:
             e = self._local(eps, "eps", scalar_ok=True)
             self._check_eps(e)
@@ -398,8 +404,9 @@ class VANSSolver:
         par, ops = self.params, self.ops
         nu = eps_old * self._viscosity()
         hdt = 0.5 * dt if par.taylor_galerkin else 0.0
+        q, u = self._ext("q", self._q), self._ext("u", self._u)
         kernels.momentum_rhs(
-            ops.indptr, ops.indices, ops.grad, ops.tens, self.q, self.u, self.gp_owned, nu, par.density, hdt, self._rhs
+            ops.indptr, ops.indices, ops.grad, ops.tens, q, u, self.gp_owned, nu, par.density, hdt, self._rhs
         )
         q_star = self._scratch_vector.x.array.reshape(-1, self.gdim)
         kernels.predictor_update(
@@ -412,7 +419,7 @@ class VANSSolver:
     def _solve_pressure(self, dt, eps_old, q_star) -> tuple[int, tuple[float, float, float, float]]:
         """Poisson equation for φ = Δt δP/ρ (seed 001 eq 39) and the pressure update; mass balance."""
         par, ops, n = self.params, self.ops, self.n_owned
-        kernels.divergence(ops.indptr, ops.indices, ops.grad, q_star, self._div)
+        kernels.divergence(ops.indptr, ops.indices, ops.grad, self._ext("q*", self._scratch_vector), self._div)
         storage_sum = kernels.pressure_rhs(self._div, ops.mass, self.eps, eps_old, dt, self._b)
         inflow = self.bc.inflow(self.t + dt)
         if inflow > 0.0:  # |Σ_i r_i| <= sqrt(N) ||r||_2 <= mass_tolerance * inflow
@@ -421,13 +428,16 @@ class VANSSolver:
             rtol, atol = par.pressure_rtol, 1e-300
         total_flux = float(np.einsum("ij,ij->", ops.bnormal[:n], q_star[:n]))
         c = self.comm
-        flux, storage_rate = c.allreduce(np.array([total_flux, storage_sum]), op=MPI.SUM)
+        buf = np.array([total_flux, storage_sum])
+        c.Allreduce(MPI.IN_PLACE, buf, op=MPI.SUM)
+        flux, storage_rate = float(buf[0]), float(buf[1])
         iterations = 0
         for _ in range(4):
             self.phi, its = self.pressure.solve(self._b, rtol, atol)
+            self.phi_ext = self.ops.extension.extend("phi", self.pressure.x, self.phi)
             iterations += its
             # mass balance: exact inflow; outflow through the outlet faces of the outlet control volumes
-            corr = c.allreduce(float(np.sum(self._outlet_stiffness @ self.phi - self._b[self._outlet_rows])))
+            corr = c.allreduce(float(np.sum(self._outlet_stiffness @ self.phi_ext - self._b[self._outlet_rows])))
             outflow = flux - corr + inflow
             # safety net: CG's recursive residual may drift from the true one; tighten and continue if so
             if inflow <= 0.0 or abs(inflow - outflow - storage_rate) <= par.mass_tolerance * inflow:
@@ -440,7 +450,7 @@ class VANSSolver:
     def _correct(self, dt, q_star) -> None:
         """Velocity correction (seed 001 eq 37): q = q* − ΔV⁻¹ G φ, then the boundary conditions."""
         par, ops = self.params, self.ops
-        kernels.gradient(ops.indptr, ops.indices, ops.grad, self.phi, self._g_phi)
+        kernels.gradient(ops.indptr, ops.indices, ops.grad, self.phi_ext, self._g_phi)
         kernels.correct(q_star, self._g_phi, ops.mass, par.density / dt, self.gp_owned, self.q, self.grad_p)
         self.bc.apply_velocity(self.q, self.t + dt)
         self._q.x.scatter_forward()

@@ -39,6 +39,9 @@ def test_sweeps_match_ufl(cell):
     q = np.ascontiguousarray(q[:gdim].T)
     qf = dolfinx.fem.Function(V)
     qf.x.array[:] = q.ravel()
+    q = ops.extension.extend("q", qf.vector, qf.x.array)  # + nodes of off-rank cells touching owned nodes
+    q0 = dolfinx.fem.Function(ops.Q)
+    q0.x.array[:] = qf.x.array[::gdim]
     v = ufl.TestFunction(ops.Q)
     # node volumes and divergence
     assert MPI.COMM_WORLD.allreduce(float(ops.mass[:n].sum())) == pytest.approx(1.0, rel=1e-12)
@@ -47,16 +50,16 @@ def test_sweeps_match_ufl(cell):
     assert np.allclose(div, ufl_vector(ops, v * ufl.div(qf) * ufl.dx), atol=1e-13)
     # gradient of a scalar
     grad = np.zeros((n, gdim))
-    kernels.gradient(ops.indptr, ops.indices, ops.grad, q[:, 0].copy(), grad)
+    kernels.gradient(ops.indptr, ops.indices, ops.grad, ops.extension.extend("q0", q0.vector, q0.x.array), grad)
     for d in range(gdim):
         assert np.allclose(grad[:, d], ufl_vector(ops, v * qf[0].dx(d) * ufl.dx), atol=1e-13)
     # momentum RHS with constant coefficients: viscous and Taylor-Galerkin terms are exact weak forms
     u0 = np.array([0.7, -0.4, 0.3])[:gdim]
-    u = np.tile(u0, (ops.n_local, 1))
+    u = np.tile(u0, (ops.n_ext, 1))
     nu, rho, hdt = 0.3, 1.3, 0.05
     out = np.zeros((n, gdim))
     gp = np.zeros((n, gdim))
-    kernels.momentum_rhs(ops.indptr, ops.indices, ops.grad, ops.tens, q, u, gp, np.full(ops.n_local, nu), rho, hdt, out)
+    kernels.momentum_rhs(ops.indptr, ops.indices, ops.grad, ops.tens, q, u, gp, np.full(ops.n_ext, nu), rho, hdt, out)
     uc = ufl.as_vector([float(c) for c in u0])
     for c in range(gdim):
         conv = -rho * v * ufl.dot(uc, ufl.grad(qf[c])) * ufl.dx  # −ρ∇·(q⊗u) with u constant
@@ -64,7 +67,7 @@ def test_sweeps_match_ufl(cell):
         ref = ufl_vector(ops, conv + tg)  # viscous term vanishes: u is constant
         assert np.allclose(out[:, c], ref, atol=1e-12)
     # viscous term alone: −∫ ν ∇φ_i·∇u_h with u = q (field), convection off via zero velocity in the flux
-    kernels.momentum_rhs(ops.indptr, ops.indices, ops.grad, ops.tens, q, q, gp, np.full(ops.n_local, nu), 0.0, 0.0, out)
+    kernels.momentum_rhs(ops.indptr, ops.indices, ops.grad, ops.tens, q, q, gp, np.full(ops.n_ext, nu), 0.0, 0.0, out)
     for c in range(gdim):
         ref = ufl_vector(ops, -nu * ufl.dot(ufl.grad(v), ufl.grad(qf[c])) * ufl.dx)
         assert np.allclose(out[:, c], ref, atol=1e-12)
