@@ -131,7 +131,11 @@ class VANSSolver:
     * Outputs (read-only views, n_local rows): `u` interstitial velocity (n, gdim) [m/s], `q` = εu,
       `p` [Pa], `grad_p` (lumped L2 projection) [Pa/m], `eps`, `node_volume` = ∫φ_i dx [m^3].
     * `compute_dt()` from CFL/Fourier within [dt_min, dt_max]; `t` the current time; `functions()` the
-      DOLFINx Functions (u, p, eps) for output.
+      DOLFINx Functions (u, p, eps) for output; `effective_viscosity()` μ + ρν_t at the nodes.
+    * Initial conditions: `set_void_fraction(eps)` (no ∂ε/∂t source), `set_pressure(p)`, and `q[:] = ...`
+      (superficial velocity; boundary values are imposed at the next step).
+    * `StepInfo`: t, dt, cfl, fourier, poisson_iterations, inflow / outflow / outflow_direct /
+      storage_rate [m^3/s], mass_imbalance [kg/s] = ρ(inflow − outflow − storage_rate), timings [s].
     * PETSc options prefix of the pressure solve: `<prefix>pressure_` (default `febed_pressure_`).
     """
 
