@@ -99,6 +99,22 @@ class VANSParameters:
             raise ValueError(f"VANSParameters.gravity is a magnitude >= 0, got {self.gravity}")
 
 
+def apply_petsc_options(text: str) -> None:
+    """Insert `-key value` pairs (e.g. "-febed_pressure_pc_type gamg") into the PETSc options database."""
+    from petsc4py import PETSc
+
+    tokens = text.split()
+    opts = PETSc.Options()
+    i = 0
+    while i < len(tokens):
+        key = tokens[i]
+        if not key.startswith("-"):
+            raise ValueError(f"gas.petsc_options: expected '-option value' pairs, got {key!r} in {text!r}")
+        value = tokens[i + 1] if i + 1 < len(tokens) and not tokens[i + 1].startswith("-") else None
+        opts[key.lstrip("-")] = "" if value is None else value
+        i += 1 if value is None else 2
+
+
 @dataclass
 class StepInfo:
     """What one gas step did. Flows in m^3/s (m^2/s in 2D); mass imbalance in kg/s."""
@@ -205,7 +221,11 @@ class VANSSolver:
                 pressure=d.get("pressure", 0.0),
                 cross_section_tags=tuple(d.get("cross_section_tags", ()) or ()),
             )
+        gd = g.as_dict()
+        apply_petsc_options(gd.get("petsc_options", ""))
+        extra = {k: gd[k] for k in ("taylor_galerkin", "mass_tolerance", "pressure_rtol") if k in gd}
         params = VANSParameters(
+            **extra,
             density=g.density,
             viscosity=g.viscosity,
             les=g.les,

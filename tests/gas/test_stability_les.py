@@ -59,3 +59,19 @@ def test_smagorinsky_viscosity_in_shear(les):
     dt = s.compute_dt()
     mu_max = MPI.COMM_WORLD.allreduce(float(mu[: s.n_owned].max()), op=MPI.MAX)
     assert dt == pytest.approx(min(0.2 * h / (gamma * A), 0.15 * h**2 / mu_max), rel=1e-6)
+
+
+def test_petsc_options_reach_the_pressure_solver():
+    from petsc4py import PETSc
+
+    from febed.gas.vans import apply_petsc_options
+
+    apply_petsc_options("-febedtest_pressure_pc_type jacobi -febedtest_pressure_ksp_monitor_cancel")
+    try:
+        s = box_solver(4, viscosity=1e-3, prefix="febedtest_")
+        assert s.pressure.ksp.getPC().getType() == "jacobi"
+    finally:
+        PETSc.Options().delValue("febedtest_pressure_pc_type")
+        PETSc.Options().delValue("febedtest_pressure_ksp_monitor_cancel")
+    with pytest.raises(ValueError, match="petsc_options"):
+        apply_petsc_options("pc_type gamg")
