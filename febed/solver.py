@@ -136,17 +136,18 @@ class CoupledSolver:
     def advance_particles(self, dt: float, n_sub: int) -> None:
         """`n_sub` DEM steps of dt/n_sub with drag and pressure-gradient forces from the frozen gas."""
         t0 = time.perf_counter()
-        K, u, f_p = self.fluid_state()
+        K, f_d, f_p = self.fluid_state()
         P = self.dem.particles
         n = P.n_owned
         gid = P.gid[:n].copy()
+        v0 = P.vel[:n].copy()  # K (u − v) = F_D + K (v0 − v): the drag follows the particle velocity
         tau = float(np.min(P.mass[:n] / np.maximum(K, 1e-300))) if n else math.inf
         chunks = min(n_sub, max(1, math.ceil(dt / (0.1 * tau))))
         h = dt / n_sub
         done = 0
         for k in range(chunks):
             steps = (n_sub * (k + 1)) // chunks - done
-            f = K[:, None] * (u - P.vel[:n]) + f_p
+            f = f_d + f_p if k == 0 else f_d + f_p + K[:, None] * (v0 - P.vel[:n])
             t1 = time.perf_counter()
             self.timers.coupling += t1 - t0
             self.dem.advance(steps, h, f)
@@ -156,7 +157,7 @@ class CoupledSolver:
             if not np.array_equal(P.gid[:n], gid):  # the DEM reordered its rows: follow them by gid
                 order = np.argsort(gid)
                 perm = order[np.searchsorted(gid, P.gid[:n], sorter=order)]
-                K, u, f_p, gid = K[perm], u[perm], f_p[perm], gid[perm]
+                K, f_d, f_p, v0, gid = K[perm], f_d[perm], f_p[perm], v0[perm], gid[perm]
         self.timers.coupling += time.perf_counter() - t0
 
     def locate_particles(self) -> None:
@@ -194,17 +195,16 @@ class CoupledSolver:
         return (d if n_orig.max(initial=1.0) == 1.0 else d / np.cbrt(n_orig)), n_orig
 
     def fluid_state(self):
-        """Drag coefficient K_p (kg/s), gas velocity u@p and pressure-gradient force (N, 3) per owned particle.
+        """Drag coefficient K_p (kg/s), drag F_D and pressure-gradient force F_P (N, 3) per owned particle.
 
-        Locates the particles first; the values come from the current gas fields.
+        Locates the particles first; one fused pass interpolates the current gas fields and applies the law.
         """
         self.locate_particles()
         gas = self.gas
-        c = self.coupler
-        u, eps, gp = c.gas_at_particles(gas.u, gas.eps, gas.grad_p)
         d_orig, n_orig = self._originals()
-        K, _, f_p = c.particle_forces(u, eps, gp, self.dem.particles.vel[: self.dem.particles.n_owned], d_orig, n_orig)
-        return K, u, f_p
+        v = self.dem.particles.vel[: self.dem.particles.n_owned]
+        K, f_d, f_p, _ = self.coupler.forces(gas.u, gas.eps, gas.grad_p, v, d_orig, n_orig)
+        return K, f_d, f_p
 
     def project(self):
         """ε^{n+1} (with its floor), K_i [kg/(m^3 s)], K_i v̄_i and the explicit force density at the nodes.
