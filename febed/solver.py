@@ -90,6 +90,7 @@ class CoupledSolver:
             cp.pressure_gradient,
         )  # fmt: skip
         self.fixed = case.particles.fixed
+        self._located_now = False  # the coupler's cells and weights match the particles' current positions
         self.outlet_facets = self._outlet_facet_mask()
         self.t = 0.0
         self.steps = 0
@@ -136,7 +137,7 @@ class CoupledSolver:
     def advance_particles(self, dt: float, n_sub: int) -> None:
         """`n_sub` DEM steps of dt/n_sub with drag and pressure-gradient forces from the frozen gas."""
         t0 = time.perf_counter()
-        K, f_d, f_p = self.fluid_state()
+        K, f_d, f_p = self.fluid_state(relocate=not self._located_now)
         P = self.dem.particles
         n = P.n_owned
         gid = P.gid[:n].copy()
@@ -151,6 +152,7 @@ class CoupledSolver:
             t1 = time.perf_counter()
             self.timers.coupling += t1 - t0
             self.dem.advance(steps, h, f)
+            self._located_now = False
             t0 = time.perf_counter()
             self.timers.dem += t0 - t1
             done += steps
@@ -194,12 +196,15 @@ class CoupledSolver:
         d = P.diameter[:n]
         return (d if n_orig.max(initial=1.0) == 1.0 else d / np.cbrt(n_orig)), n_orig
 
-    def fluid_state(self):
+    def fluid_state(self, relocate: bool = True):
         """Drag coefficient K_p (kg/s), drag F_D and pressure-gradient force F_P (N, 3) per owned particle.
 
-        Locates the particles first; one fused pass interpolates the current gas fields and applies the law.
+        Locates the particles first (unless `relocate` is False: they have not moved since the last call);
+        one fused pass interpolates the current gas fields and applies the law.
         """
-        self.locate_particles()
+        if relocate:
+            self.locate_particles()
+            self._located_now = True
         gas = self.gas
         d_orig, n_orig = self._originals()
         v = self.dem.particles.vel[: self.dem.particles.n_owned]
