@@ -5,8 +5,9 @@
     febed params [SECTION]                                            every parameter: default, unit, help
     febed mesh NAME [--level L] [--cell C] [--size H] [--extent ...] -o FILE.msh   build a built-in mesh
 
-Errors in the user's input (case, mesh, output folder) are printed as one clear message and exit with
-status 2; a traceback means a bug in febed.
+Errors in the user's input (case, mesh, output folder, values a solver refuses) are printed as one clear
+message and exit with status 2; a run that fails (a particle escaping, ...) exits with status 3; a
+traceback means a bug in febed (`febed run -v` shows the traceback of a refused value too).
 """
 
 from __future__ import annotations
@@ -137,6 +138,7 @@ def cmd_run(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `febed` console script; returns the exit status."""
     from febed.io.rundir import OutputError
+    from febed.solver import RunFailure
 
     args = _parser().parse_args(argv)
     commands = {"run": cmd_run, "check": cmd_check, "params": cmd_params, "mesh": cmd_mesh}
@@ -145,6 +147,13 @@ def main(argv: list[str] | None = None) -> int:
     except CaseError as e:
         _say(f"febed: error in {e}", err=True)
     except (MeshError, OutputError, UserError) as e:
+        _say(f"febed: error: {e}", err=True)
+    except RunFailure as e:
+        _say(f"febed: the run failed: {e}", err=True)
+        return 3
+    except ValueError as e:  # a value the solvers refuse, with their message (-v shows the traceback)
+        if getattr(args, "verbose", False):
+            raise
         _say(f"febed: error: {e}", err=True)
     return 2
 
