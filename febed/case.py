@@ -308,8 +308,8 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
     if parts.count and parts.bed_mass:
         problems.append("[particles] give count or bed_mass, not both")
     lo, hi = parts.region[:3], parts.region[3:]
-    if any(b <= a for a, b in zip(lo, hi, strict=True)):
-        problems.append(f"[particles] region = {parts.region}: needs xmin < xmax, ymin < ymax, zmin < zmax")
+    if any(b < a for a, b in zip(lo, hi, strict=True)):  # equal bounds allowed: z of a 2D case
+        problems.append(f"[particles] region = {parts.region}: needs xmin <= xmax, ymin <= ymax, zmin <= zmax")
     run = case.run
     if run.mode in ("gas", "cfd-dem") and not case.boundary:
         problems.append(f"[run] mode = {run.mode!r} needs gas boundary conditions: add [gas.boundary.<tag>] tables")

@@ -204,12 +204,28 @@ SCHEMA: dict[str, dict[str, Param]] = {
             lo=0.0,
             lo_open=True,
         ),
+        "settle_max_time": Param(
+            10.0, "s", "packing a bed stops after this much simulated time at most", float, lo=0.0, lo_open=True
+        ),
         "rotation": Param(True, "-", "integrate particle rotation (seed 001 switches it off)", bool),
         "fixed": Param(False, "-", "cfd-dem: the particles do not move (a fixed bed); the gas still sees them", bool),
     },
     "contact": {
         "model": Param("linear-history", "-", "contact law", str, choices=CONTACT_LAWS),
         "stiffness": Param(1000.0, "N/m", "normal spring stiffness k_n (seed 001 eq 8)", float, lo=0.0, lo_open=True),
+        "stiffness_wall": Param(
+            None, "N/m", "particle-wall normal stiffness; unset: the same as stiffness", float, lo=0.0, lo_open=True
+        ),
+        "reference_overlap": Param(
+            0.005,
+            "",
+            "from_material: overlap (fraction of d) at which seed 000's Hertz/Mindlin stiffnesses (eqs 10-11) are "
+            "linearised",
+            float,
+            lo=0.0,
+            lo_open=True,
+            hi=0.1,
+        ),
         "tangential_ratio": Param(2.0 / 7.0, "", "k_t / k_n for linear-history", float, lo=0.0),
         "from_material": Param(False, "-", "derive k_n, k_t from young_modulus and poisson (seed 000 eqs 10-15)", bool),
         "young_modulus": Param(1e7, "Pa", "Young's modulus E (when from_material)", float, lo=0.0, lo_open=True),

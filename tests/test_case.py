@@ -102,7 +102,7 @@ BAD = [
     ("[contact]\nrotation = 1\n", "unknown key 'rotation'"),
     ("[particles]\nrotation = 1\n", "[particles] rotation = 1: expected true or false"),
     ("[particles]\nregion = [0, 0, 1]\n", "region = [0, 0, 1]: expected a list of 6 numbers"),
-    ("[particles]\nregion = [0, 0, 0, 1, -1, 1]\n", "needs xmin < xmax"),
+    ("[particles]\nregion = [0, 0, 0, 1, -1, 1]\n", "needs xmin <= xmax"),
     ('[mesh]\nfile = "nowhere.msh"\nbuiltin = ""\n', "mesh file not found"),
     ('[mesh]\nbuiltin = "pseudo3d"\n', "[mesh] builtin = 'pseudo3d': expected one of"),
     ("[gas.boundary.inlet2]\ntype = 'inlet'\n", "type = 'inlet' needs velocity"),

@@ -117,7 +117,7 @@ def build_dem(case, md, log) -> DEM:
     log.info(f"inserted {pos.shape[0]} particles ({p.insertion}); DEM step {dem.dt:.3e} s")
     if bed_path is not None:
         log.info(f"packing the bed until the mean kinetic energy < {p.settle_energy:g} J ...")
-        t = settle(dem, p.settle_energy, max_time=10.0, log=log)
+        t = settle(dem, p.settle_energy, max_time=p.settle_max_time, log=log)
         save_bed(bed_path, dem.particles, settle_time=t)
         log.info(f"packed in {t:.3f} s of simulated time; saved {bed_path}")
         dem = DEM.from_case(case, walls=walls, dim=dim, particles=dem.particles)

@@ -7,7 +7,6 @@ list is rebuilt): identify particles by `particles.gid`, and pass `f_ext` in the
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,12 +119,13 @@ class DEM:
         kt_ratio = c.tangential_ratio
         if c.from_material:
             d = case.particles.diameter
-            kn, kt = stiffness_from_material(c.young_modulus, c.poisson, 0.5 * d, _ref_overlap(case) * d)
+            kn, kt = stiffness_from_material(c.young_modulus, c.poisson, 0.5 * d, c.reference_overlap * d)
             kt_ratio = kt / kn
         params = DEMParams(
             dim=dim,
             contact_model=c.model,
             kn=kn,
+            kn_wall=c.stiffness_wall,
             tangential_ratio=kt_ratio,
             restitution_pp=c.restitution_pp,
             restitution_pw=c.restitution_pw,
@@ -360,11 +360,3 @@ class DEM:
         P = self.particles
         n = P.n_owned
         return -float(np.dot(P.mass[:n], P.pos[:n] @ self.gvec))
-
-
-def _ref_overlap(case) -> float:
-    """Reference overlap (fraction of d) at which material stiffnesses are linearised (default 0.5 %)."""
-    return float(getattr(case.contact, "reference_overlap", 0.005)) if hasattr(case, "contact") else 0.005
-
-
-__all__ = ["DEM", "DEMParams", "math"]
