@@ -173,6 +173,20 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "fourier": Param(0.15, "", "largest Fourier (viscous) number of the gas step", float, lo=0.0, lo_open=True),
         "dt_min": Param(1e-6, "s", "smallest gas time step allowed", float, lo=0.0, lo_open=True),
         "dt_max": Param(1e-3, "s", "largest gas time step allowed", float, lo=0.0, lo_open=True),
+        "taylor_galerkin": Param(True, "-", "Lax-Wendroff streamline term that stabilises explicit convection", bool),
+        "mass_tolerance": Param(
+            1e-6,
+            "",
+            "bound on the per-step gas mass imbalance as a fraction of the inflow",
+            float,
+            lo=0.0,
+            lo_open=True,
+            hi=1e-2,
+        ),
+        "pressure_rtol": Param(
+            1e-8, "", "Poisson relative tolerance when no gas flows in", float, lo=0.0, lo_open=True
+        ),
+        "petsc_options": Param("", "-", "PETSc options for the gas solves, e.g. '-febed_pressure_pc_type gamg'", str),
         "void_fraction": Param(
             1.0, "", "gas-only mode: uniform void fraction of the porous medium", float, lo=0.0, lo_open=True, hi=1.0
         ),

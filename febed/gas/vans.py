@@ -221,11 +221,11 @@ class VANSSolver:
                 pressure=d.get("pressure", 0.0),
                 cross_section_tags=tuple(d.get("cross_section_tags", ()) or ()),
             )
-        gd = g.as_dict()
-        apply_petsc_options(gd.get("petsc_options", ""))
-        extra = {k: gd[k] for k in ("taylor_galerkin", "mass_tolerance", "pressure_rtol") if k in gd}
+        apply_petsc_options(g.petsc_options)
         params = VANSParameters(
-            **extra,
+            taylor_galerkin=g.taylor_galerkin,
+            mass_tolerance=g.mass_tolerance,
+            pressure_rtol=g.pressure_rtol,
             density=g.density,
             viscosity=g.viscosity,
             les=g.les,
