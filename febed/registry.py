@@ -42,13 +42,7 @@ class Registry:
         if not self._loaded:
             self._loaded = True
             for mod in self._modules:
-                try:
-                    importlib.import_module(mod)
-                except ModuleNotFoundError as e:
-                    # A closure module not (yet) part of this build registers nothing; any other missing
-                    # import inside an existing module is a real error and propagates.
-                    if not (e.name and mod.startswith(e.name)):
-                        raise
+                importlib.import_module(mod)
 
     def names(self) -> list[str]:
         """Sorted names of every registered entry."""
