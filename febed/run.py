@@ -30,11 +30,12 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed.coupling.exchange import solid_volume
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.weights import compute_weights
 from febed.io.probes import ProbeFile
-from febed.solver import RunFailure, build_solver, particle_volume
+from febed.solver import RunFailure, build_solver
 
 
 class SectionAverage:
@@ -136,7 +137,7 @@ class CoupledRun:
         s = self.solver
         P = s.dem.particles
         n = P.n_owned
-        vol = particle_volume(P.diameter[:n])
+        vol = solid_volume(P.diameter[:n], 1.0)  # a parcel's volume is that of its sphere
         p = s.gas.p
         sec = {name: f(p) for name, f in self.sections.items()}
         rho_g, g = self.case.gas.density, self.case.run.gravity

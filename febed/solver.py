@@ -222,11 +222,6 @@ class CoupledSolver:
         return x.eps, x.K, np.ascontiguousarray(x.Kv), np.ascontiguousarray(x.F)
 
 
-def particle_volume(d: np.ndarray) -> np.ndarray:
-    """Sphere volumes π d³/6 (m^3) of diameters d (m)."""
-    return (math.pi / 6.0) * d * d * d
-
-
 def depth_of(case) -> float:
     """2D depth (m) turning areas into volumes: `[mesh] depth`, or one particle diameter if 0."""
     return case.mesh.depth if case.mesh.depth > 0 else case.particles.diameter
