@@ -22,14 +22,13 @@ from febed.schema import INTEGRATORS
 
 @njit(cache=True, error_model="numpy")
 def _kick(n, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2):
+    """Half kick v += h a, w += h alpha (same arithmetic as `_verlet_drift`, so a split run stays bit for bit)."""
     for i in range(n):
-        s = h / mass[i]
+        im = 1.0 / mass[i]
+        ii = 1.0 / inertia[i] if rotation else 0.0
         for a in range(3):
-            vel[i, a] += s * (force[i, a] + fext[i, a])
-        if rotation:
-            s = h / inertia[i]
-            for a in range(3):
-                omega[i, a] += s * torque[i, a]
+            vel[i, a] += h * ((force[i, a] + fext[i, a]) * im)
+            omega[i, a] += h * (torque[i, a] * ii)
         if dim2:
             vel[i, 2] = 0.0
             omega[i, 0] = 0.0
@@ -39,8 +38,13 @@ def _kick(n, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2):
 @njit(cache=True, error_model="numpy")
 def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp, wp,
                   pos_ref, half_skin):  # fmt: skip
-    """Fused pass: v += kick a; x += dt v; predicted v^n+1 = v + dt/2 a; returns True if a particle moved too far."""
+    """Fused pass: v += kick a; x += dt v; predicted v^n+1 = v + dt/2 a; returns True if a particle moved too far.
+
+    kick is dt/2 (first step) or dt (the last half kick of the previous step fused with this one's); the dt
+    kick is taken as two half kicks so that stopping between steps (`_kick`) gives the same bits.
+    """
     h = 0.5 * dt
+    two = kick > h
     hs2 = half_skin * half_skin
     far = False
     for i in range(n_owned):
@@ -49,7 +53,9 @@ def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass,
         d2 = 0.0
         for a in range(3):
             acc = (force[i, a] + fext[i, a]) * im
-            v = vel[i, a] + kick * acc
+            v = vel[i, a] + h * acc
+            if two:
+                v = v + h * acc
             if dim2 and a == 2:
                 v = 0.0
             vel[i, a] = v
@@ -58,11 +64,14 @@ def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass,
             vp[i, a] = v + h * acc
             d = x - pos_ref[i, a]
             d2 += d * d
-            w = omega[i, a] + kick * torque[i, a] * ii
+            alpha = torque[i, a] * ii
+            w = omega[i, a] + h * alpha
+            if two:
+                w = w + h * alpha
             if dim2 and a < 2:
                 w = 0.0
             omega[i, a] = w
-            wp[i, a] = w + h * torque[i, a] * ii
+            wp[i, a] = w + h * alpha
         if d2 > hs2:
             far = True
     return far

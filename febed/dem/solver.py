@@ -328,6 +328,87 @@ class DEM:
             self._rk2_scratch = s
         return s
 
+    # ------------------------------------------------------------------ checkpoint
+    def get_state(self) -> dict:
+        """The whole stepping state as plain numpy arrays / ints / floats (for np.savez checkpoints).
+
+        Owned particle rows (all fields, forces included for Verlet), pair and wall lists with their contact
+        history, the list reference positions, sort counters, step size, time, steps and max overlap. A new
+        DEM with the same parameters and walls continues bit for bit after `set_state`. Ghost rows are not
+        saved (the parallel layer rebuilds them).
+        """
+        P = self.particles
+        if P.n_ghost:
+            self.save_history()  # lists index ghost rows: keep the history by gid pairs only
+        s = {f"p_{k}": v for k, v in P.to_dict().items()}
+        s["p_next_gid"] = int(P.next_gid)
+        keep_lists = self._lists_valid and self.pairs.n == P.n and P.n_ghost == 0
+        s["lists_valid"] = int(keep_lists)
+        if keep_lists:
+            pl = self.pairs
+            m = pl.size
+            s["pl_start"] = pl.start[: pl.n + 1].copy()
+            s["pl_nbr"] = pl.nbr[: max(m, 1)].copy()
+            s["pl_hist"] = pl.hist[: max(m, 1)].copy()
+            s["w_start"] = self.wstart.copy()
+            s["w_id"] = self.wid.copy()
+            s["w_hist"] = self.whist.copy()
+        s["pl_builds"] = int(self.pairs.builds)
+        s["pl_skin"] = float(self.pairs.skin)
+        s["has_saved"] = int(self._saved is not None)
+        if self._saved is not None:
+            (k, v), (wk, wv) = self._saved
+            s.update(saved_keys=k.copy(), saved_vals=v.copy(), saved_wkeys=wk.copy(), saved_wvals=wv.copy())
+        s["pos_ref"] = self.pos_ref[: P.n_owned].copy()
+        s["dirty"] = int(self._dirty or not keep_lists)
+        s["forces_valid"] = int(self._forces_valid and P.n_ghost == 0)
+        s["since_sort"] = int(self._since_sort)
+        s["dt"] = float(self._dt) if self._dt is not None else -1.0
+        s["time"] = float(self.time)
+        s["steps"] = int(self.steps)
+        s["max_overlap"] = float(self.max_overlap)
+        return s
+
+    def set_state(self, state: dict) -> None:
+        """Restore a state of `get_state` (arrays as loaded by np.load are fine) into this DEM."""
+        missing = [k for k in ("p_pos", "p_gid", "time", "steps", "dt") if k not in state]
+        if missing:
+            raise ValueError(f"state misses {missing}: pass a dict from DEM.get_state()")
+        data = {k[2:]: np.asarray(v) for k, v in state.items() if k.startswith("p_") and k != "p_next_gid"}
+        P = Particles.from_dict(data)
+        P.next_gid = max(int(state.get("p_next_gid", P.next_gid)), P.next_gid)
+        self.particles = P
+        n = P.n
+        self.pairs = PairList(skin=float(state.get("pl_skin", 1e-12)))
+        self.pairs.builds = int(state.get("pl_builds", 0))
+        self._lists_valid = bool(int(state.get("lists_valid", 0)))
+        if self._lists_valid:
+            pl = self.pairs
+            pl.start = np.array(state["pl_start"], dtype=np.int64)
+            pl.nbr = np.array(state["pl_nbr"], dtype=np.int64)
+            pl.hist = np.array(state["pl_hist"], dtype=float).reshape(-1, 3)
+            pl.n = n
+            self.wstart = np.array(state["w_start"], dtype=np.int64)
+            self.wid = np.array(state["w_id"], dtype=np.int64)
+            self.whist = np.array(state["w_hist"], dtype=float).reshape(-1, 3)
+            self.walls.prepare(0.5 * float(P.diameter.max()) + pl.skin if n else 0.0)
+        self._saved = None
+        if int(state.get("has_saved", 0)):
+            self._saved = (
+                (np.array(state["saved_keys"], dtype=np.int64), np.array(state["saved_vals"]).reshape(-1, 3)),
+                (np.array(state["saved_wkeys"], dtype=np.int64), np.array(state["saved_wvals"]).reshape(-1, 3)),
+            )
+        self.pos_ref = np.array(state["pos_ref"], dtype=float).reshape(-1, 3)
+        self._dirty = bool(int(state.get("dirty", 1)))
+        self._forces_valid = bool(int(state.get("forces_valid", 0)))
+        self._since_sort = int(state.get("since_sort", 0))
+        dt = float(state["dt"])
+        self._dt = dt if dt > 0 else None
+        self.time = float(state["time"])
+        self.steps = int(state["steps"])
+        self.max_overlap = float(state.get("max_overlap", 0.0))
+        self._fext = np.zeros((0, 3))
+
     # ------------------------------------------------------------------ diagnostics
     def kinetic_energy(self) -> float:
         """Kinetic energy (J) of the owned particles, translation + rotation."""
