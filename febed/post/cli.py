@@ -1,0 +1,131 @@
+"""Command-line parts of `febed post` and `febed study`, wired into `febed` by febed/cli.py.
+
+    febed post RUN_DIR [--window T0 T1] [--bins NX NZ] [--kernel ngp|cic] [--agitation cell|window]
+                       [--heights H ...] [--no-figures] [-o OUT]
+    febed study STUDY.toml [--list | --jobs FILE] [--collect-only] [--retry-failed] [--no-fields]
+
+The same commands without the `febed` front end: `python -m febed.post RUN_DIR ...` and
+`python -m febed.post study STUDY.toml ...`. Bad input raises ValueError (printed by febed/cli.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def add_post_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the `post` sub-command to an argparse subparsers object; returns its parser."""
+    p = subparsers.add_parser(
+        "post",
+        help="time-averaged particle fields, profiles and probe series of a run (CSV + PNG in RUN_DIR/post)",
+    )
+    p.add_argument("run_dir", help="a run's output folder (finished or still running)")
+    p.add_argument(
+        "--window", type=float, nargs=2, metavar=("T0", "T1"), help="averaging window [s]; default the last half"
+    )
+    p.add_argument(
+        "--bins", type=int, nargs=2, metavar=("NX", "NZ"), help="plane bins; default the built-in mesh's cells"
+    )
+    p.add_argument("--kernel", choices=("ngp", "cic"), default="ngp", help="particle -> bin kernel (default ngp)")
+    p.add_argument(
+        "--agitation",
+        choices=("cell", "window"),
+        default="cell",
+        help="q_p^2 about the bin's instantaneous mean velocity (cell, seed 001) or its time mean (window)",
+    )
+    p.add_argument(
+        "--heights", type=float, nargs="+", default=[0.092], metavar="Z/H", help="profile heights z/H (0.092)"
+    )
+    p.add_argument("--no-figures", action="store_true", help="CSV tables only")
+    p.add_argument("-o", "--output", help="output folder (default RUN_DIR/post)")
+    return p
+
+
+def cmd_post(args) -> int:
+    """Run `febed post` with parsed arguments; prints what it wrote and the main numbers."""
+    from febed.post.report import post_run
+
+    run_dir = Path(args.run_dir)
+    if not run_dir.is_dir():
+        raise ValueError(f"RUN_DIR {run_dir} is not a folder")
+    res = post_run(
+        run_dir,
+        window=tuple(args.window) if args.window else None,
+        bins=tuple(args.bins) if args.bins else None,
+        kernel=args.kernel,
+        agitation=args.agitation,
+        heights=tuple(args.heights),
+        figures=not args.no_figures,
+        out=args.output,
+    )
+    v = res.values
+    print(
+        f"{run_dir}: window {v['window_t0']:g}..{v['window_t1']:g} s, {v['snapshots']} particle snapshots, "
+        f"{v['probe_rows']} probe rows; mean dp_bed = {v['dp_bed_mean']:.1f} Pa "
+        f"({v['dp_bed_over_weight']:.3f} x bed weight/area), bed height {1e3 * v['bed_height_mean']:.1f} mm"
+    )
+    for f in res.files:
+        print(f"  wrote {f}")
+    return 0
+
+
+def add_study_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the `study` sub-command to an argparse subparsers object; returns its parser."""
+    p = subparsers.add_parser(
+        "study", help="run a family of cases varying named parameters, resume it, compare the results"
+    )
+    p.add_argument("study", help="study TOML file ([study] base = CASE.toml, [parameters] key = [values])")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--list", action="store_true", help="print each member's state and command line, run nothing")
+    g.add_argument(
+        "--jobs",
+        metavar="FILE",
+        help="write the (mpirun) command lines of the unfinished members to FILE (one per line), run nothing",
+    )
+    g.add_argument("--collect-only", action="store_true", help="only compare the existing results")
+    p.add_argument("--retry-failed", action="store_true", help="re-run failed members from scratch")
+    p.add_argument("--no-fields", action="store_true", help="compare probe series only (no particle averages)")
+    return p
+
+
+def cmd_study(args) -> int:
+    """Run `febed study` with parsed arguments; 0 if every member finished, 1 otherwise."""
+    from febed.study import collect, job_lines, load_study, member_states, run_study
+
+    study = load_study(args.study)
+    if args.list:
+        for m, state in member_states(study):
+            print(f"{m.name:30s} {state:12s} {' '.join(m.command(study, state == 'interrupted'))}")
+        return 0
+    if args.jobs:
+        lines = job_lines(study, retry_failed=args.retry_failed)
+        Path(args.jobs).write_text("".join(line + "\n" for line in lines))
+        print(f"wrote {len(lines)} command line(s) to {args.jobs}")
+        return 0
+    ok = True
+    if not args.collect_only:
+        ok = run_study(study, retry_failed=args.retry_failed)
+    table = collect(study, fields=not args.no_fields)
+    print(f"comparison of {len(table.rows)} member(s): {table.csv}")
+    for f in table.figures:
+        print(f"  wrote {f}")
+    return 0 if ok else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m febed.post`: `RUN_DIR [options]` or `study STUDY.toml [options]`."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(prog="python -m febed.post")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_post_parser(sub)
+    add_study_parser(sub)
+    if not argv or argv[0] not in ("post", "study", "-h", "--help"):
+        argv = ["post", *argv]
+    args = parser.parse_args(argv)
+    try:
+        return cmd_post(args) if args.command == "post" else cmd_study(args)
+    except ValueError as e:
+        print(f"febed {args.command}: error: {e}", file=sys.stderr)
+        return 2

@@ -1,0 +1,181 @@
+"""`febed post RUN_DIR`: averaged fields, profiles, time series, as CSV tables and PNG figures in RUN_DIR/post/.
+
+Files written (x/L, z/H, q_p²/U_f², flux/ρU_f, t/(d_p/U_f): seed 001 §4 scales):
+
+    fields.npz                    every averaged array + grid + window (numpy)
+    fields.csv                    one row per bin: x, z, x/L, z/H, alpha_p, flux x/z (and / ρU_f), U_p, q2
+    profile_zH<h>.csv             horizontal profiles at z/H = h (default 0.092, seed 001 Figs 13, 18)
+    timeseries.csv                t, t/(d_p/U_f), dp_bed, dp_bed/(W/A), bed_height, bed_height/H
+    summary.csv                   key, value: window, snapshots, means of dp_bed and bed height, W/A, ...
+    fields.png, profile_zH<h>.png, timeseries.png
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from febed.post.fields import AveragedFields, average_fields
+from febed.post.rundata import list_snapshots, run_info
+from febed.post.series import SeriesSummary, read_series, summarize, weight_per_area
+
+DEFAULT_HEIGHTS = (0.092,)  # z/H of seed 001 Figs 13, 18
+
+
+@dataclass
+class PostResult:
+    """What `post_run` computed and wrote: the averaged fields (None without particle output), summary, files."""
+
+    fields: AveragedFields | None
+    summary: SeriesSummary
+    files: list[Path] = field(default_factory=list)
+    values: dict = field(default_factory=dict)
+
+
+def _write_csv(path: Path, header: list[str], rows) -> Path:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for r in rows:
+            w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in r])
+    return path
+
+
+def _fields_csv(avg: AveragedFields, path: Path) -> Path:
+    s = avg.scales()
+    xs, zs = avg.grid.centres(0), avg.grid.centres(1)
+    fx, fz = avg.quantity("mass_flux_x"), avg.quantity("mass_flux_z")
+    ux, uz = avg.quantity("velocity_x"), avg.quantity("velocity_z")
+    rows = []
+    for i, x in enumerate(xs):
+        for j, z in enumerate(zs):
+            rows.append(
+                (
+                    float(x), float(z), float((x - avg.grid.lo[0]) / s["L"]), float((z - avg.grid.lo[1]) / s["H"]),
+                    float(avg.alpha_p[i, j]), float(fx[i, j]), float(fz[i, j]),
+                    float(fx[i, j] / s["rhoU_f"]), float(fz[i, j] / s["rhoU_f"]),
+                    float(ux[i, j]), float(uz[i, j]), float(avg.q2[i, j]), float(avg.q2[i, j] / s["U_f"] ** 2),
+                )
+            )  # fmt: skip
+    header = [
+        "x", "z", "x/L", "z/H", "alpha_p", "mass_flux_x", "mass_flux_z", "mass_flux_x/rhoUf", "mass_flux_z/rhoUf",
+        "U_px", "U_pz", "q2", "q2/Uf2",
+    ]  # fmt: skip
+    return _write_csv(path, header, rows)
+
+
+def post_run(
+    run_dir: str | Path,
+    window: tuple[float, float] | None = None,
+    bins: tuple[int, int] | None = None,
+    kernel: str = "ngp",
+    agitation: str = "cell",
+    heights: tuple[float, ...] = DEFAULT_HEIGHTS,
+    figures: bool = True,
+    out: str | Path | None = None,
+) -> PostResult:
+    """Post-process a run folder into `out` (default RUN_DIR/post): see the module docstring.
+
+    Args:
+        run_dir: a febed output folder, finished or still running.
+        window: (t0, t1) in s for every time average; default the last half of the particle output.
+        bins: plane bins (n_horizontal, n_vertical); default the built-in mesh's cells.
+        kernel: "ngp" (particle volume to the bin of its centre) or "cic" (bilinear, folded at walls).
+        agitation: "cell" (u' about the bin's instantaneous mean, seed 001) or "window".
+        heights: z/H of the horizontal profiles.
+        figures: write the PNG figures.
+        out: output folder.
+    """
+    run_dir = Path(run_dir)
+    info = run_info(run_dir)
+    out = Path(out) if out is not None else run_dir / "post"
+    for h in heights:
+        if not 0.0 <= h <= 1.0:
+            raise ValueError(f"heights: z/H values in [0, 1] expected, got {h}")
+    try:
+        snaps = list_snapshots(run_dir)
+    except ValueError:
+        snaps = []
+    series = read_series(run_dir)
+    if not snaps and not series:
+        raise ValueError(f"run_dir {run_dir}: neither particle snapshots nor probes.csv to post-process yet")
+    out.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
+    avg = None
+    if snaps:
+        avg = average_fields(run_dir, window, bins, kernel, agitation)
+        window = avg.window
+        np.savez(
+            out / "fields.npz",
+            x=avg.grid.centres(0), z=avg.grid.centres(1), alpha_p=avg.alpha_p, mass_flux=avg.mass_flux,
+            velocity=avg.velocity, q2=avg.q2, times=np.asarray(avg.times), window=np.asarray(avg.window),
+            kernel=avg.kernel, agitation=avg.agitation, axes=np.asarray(avg.grid.axes), depth=avg.grid.depth,
+        )  # fmt: skip
+        files += [out / "fields.npz", _fields_csv(avg, out / "fields.csv")]
+    elif window is None:
+        t = series["time"]
+        window = (float(t[0] + 0.5 * (t[-1] - t[0])), float(t[-1]))
+    volume = avg.solid_volume if avg is not None else math.nan
+    if not math.isfinite(volume) and "particles" in series and series["particles"].size:
+        volume = float(series["particles"][-1]) * math.pi / 6.0 * info.d_p**3
+    summary = summarize(series, window, weight_per_area(info, volume)) if series else None
+    if summary is None:
+        summary = SeriesSummary(window, 0, math.nan, math.nan, math.nan, math.nan, weight_per_area(info, volume))
+    values = {
+        "window_t0": window[0], "window_t1": window[1], "snapshots": len(avg.times) if avg else 0,
+        "probe_rows": summary.rows, "dp_bed_mean": summary.dp_mean, "dp_bed_std": summary.dp_std,
+        "weight_per_area": summary.weight_per_area, "dp_bed_over_weight": summary.dp_ratio,
+        "bed_height_mean": summary.bed_height_mean, "bed_height_std": summary.bed_height_std,
+        "bed_height_over_H": summary.bed_height_mean / info.height, "solid_volume": volume,
+        "U_f": info.u_f, "rho_g": info.rho_g, "rho_p": info.rho_p, "d_p": info.d_p,
+        "L": info.width, "D": info.depth, "H": info.height, "kernel": kernel, "agitation": agitation,
+        "bins": f"{avg.grid.n[0]}x{avg.grid.n[1]}" if avg else "",
+    }  # fmt: skip
+    if avg is not None:
+        s = avg.scales()
+        for h in heights:
+            x, fz = avg.profile("mass_flux_z", h * info.height)
+            _, a = avg.profile("alpha_p", h * info.height)
+            _, uz = avg.profile("velocity_z", h * info.height)
+            _, q2 = avg.profile("q2", h * info.height)
+            xl = (x - avg.grid.lo[0]) / s["L"]
+            rows = zip(x, xl, a, fz, fz / s["rhoU_f"], uz / s["U_f"], q2 / s["U_f"] ** 2, strict=True)
+            name = f"profile_zH{h:g}"
+            header = ["x", "x/L", "alpha_p", "mass_flux_z", "mass_flux_z/rhoUf", "U_pz/Uf", "q2/Uf2"]
+            files.append(_write_csv(out / f"{name}.csv", header, ([float(v) for v in r] for r in rows)))
+            values[f"{name}_flux_centre/rhoUf"] = float(np.interp(0.5, xl, fz / s["rhoU_f"]))
+            if figures:
+                from febed.post.figures import profile_plot
+
+                files.append(
+                    profile_plot(
+                        xl,
+                        {run_dir.name: fz / s["rhoU_f"]},
+                        r"$\overline{\langle\alpha_p\rho_p U_{p,z}\rangle}_{xz}/\rho U_f$",
+                        f"vertical solid mass flux at z/H = {h:g}",
+                        out / f"{name}.png",
+                    )
+                )
+        if figures:
+            from febed.post.figures import field_maps
+
+            files.append(field_maps(avg, out / "fields.png"))
+    if series:
+        t = series["time"]
+        tref = info.d_p / info.u_f if info.u_f > 0 else math.nan
+        wa = summary.weight_per_area
+        cols = [t, t / tref, series.get("dp_bed", t * np.nan), series.get("dp_bed", t * np.nan) / wa]
+        cols += [series.get("bed_height", t * np.nan), series.get("bed_height", t * np.nan) / info.height]
+        header = ["time", "t/(d_p/U_f)", "dp_bed", "dp_bed/(W/A)", "bed_height", "bed_height/H"]
+        rows = ([float(v) for v in r] for r in zip(*cols, strict=True))
+        files.append(_write_csv(out / "timeseries.csv", header, rows))
+        if figures and "dp_bed" in series and "bed_height" in series:
+            from febed.post.figures import series_plot
+
+            files.append(series_plot(series, summary, info, out / "timeseries.png"))
+    files.append(_write_csv(out / "summary.csv", ["key", "value"], values.items()))
+    return PostResult(fields=avg, summary=summary, files=files, values=values)

@@ -1,0 +1,259 @@
+"""Post-processing on synthetic particle data whose fields are known exactly (febed.post)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from febed.io.particles import vtp_bytes
+from febed.post import Grid, TimeAverage, average_fields, bin_sums, list_snapshots, post_run, read_snapshot
+
+L, D, H = 0.08, 0.015, 0.25  # the pseudo2d box (built-in), x, y (depth), z
+DP = 1e-3
+RHO_P, RHO_G, UF = 2500.0, 1.165, 1.2
+VP = math.pi / 6 * DP**3
+BINS = (4, 5)  # bins of 20 mm x 50 mm
+HX, HZ = L / BINS[0], H / BINS[1]
+
+CASE = f"""
+[run]
+end_time = 1.0
+[mesh]
+builtin = "pseudo2d"
+level = "coarse"
+[gas]
+density = {RHO_G}
+[gas.boundary.inlet]
+type = "inlet"
+velocity = {UF}
+[particles]
+diameter = {DP}
+density = {RHO_P}
+"""
+
+
+def make_run(path, snapshots, missing=(), corrupt=()):
+    """A fake run folder: case.resolved.toml + particles/*.vtp + particles.pvd (+ listed missing/corrupt files)."""
+    (path / "particles").mkdir(parents=True)
+    (path / "case.resolved.toml").write_text(CASE)
+    rows = []
+    for k, (t, pos, vel, *gid) in enumerate(snapshots):
+        name = f"particles_{k:06d}.vtp"
+        n = pos.shape[0]
+        gid = np.asarray(gid[0] if gid else np.arange(n), dtype=np.int64)
+        data = vtp_bytes(pos, {"velocity": vel, "diameter": np.full(n, DP), "gid": gid})
+        if k in corrupt:
+            data = data[: len(data) // 2]  # a half-written file
+        if k not in missing:
+            (path / "particles" / name).write_bytes(data)
+        rows.append(f'<DataSet timestep="{t:.9g}" part="0" file="{name}"/>')
+    (path / "particles" / "particles.pvd").write_text(
+        '<?xml version="1.0"?>\n<VTKFile type="Collection"><Collection>\n'
+        + "\n".join(rows)
+        + "\n</Collection></VTKFile>"
+    )
+    return path
+
+
+def lattice(m=(4, 3, 4), rows=3):
+    """Particles in the lowest `rows` bin rows, m per bin and axis, placed symmetrically about bin centres.
+
+    Returns positions (n, 3), the bin (i, j) of each particle and its offset index inside the bin.
+    """
+    pos, bins, sub = [], [], []
+    for i in range(BINS[0]):
+        for j in range(rows):
+            for a in range(m[0]):
+                for b in range(m[1]):
+                    for c in range(m[2]):
+                        x = (i + (a + 0.5) / m[0]) * HX
+                        y = (b + 0.5) / m[1] * D
+                        z = (j + (c + 0.5) / m[2]) * HZ
+                        pos.append((x, y, z))
+                        bins.append((i, j))
+                        sub.append((a, b, c))
+    return np.array(pos), np.array(bins), np.array(sub)
+
+
+def bin_velocity(i, j):
+    """A prescribed mean velocity per bin (m/s): a double loop, up in the centre, down at the walls."""
+    xc = (i + 0.5) / BINS[0]
+    return np.array([0.3 * (j - 1.0), 0.05 * i, math.cos(2 * math.pi * xc) * -0.8 + 0.1 * j])
+
+
+def fluctuations(sub, delta):
+    """Velocity fluctuations of magnitude^2 = 3 delta^2 whose mean over each bin's lattice is exactly zero."""
+    a, b, c = sub.T  # lattice indices inside the bin: a and c take an even number of values
+    sign = np.stack([(-1.0) ** a, (-1.0) ** (a + b), (-1.0) ** c], axis=1)  # each balanced over the bin
+    return delta * sign
+
+
+GRID = Grid(lo=(0.0, 0.0), hi=(L, H), n=BINS, axes=(0, 2), depth=D)
+
+
+def test_uniform_bed_alpha_flux_agitation_exact():
+    """alpha_p = N V_p / dV, flux = rho_p alpha U_bin, q^2 = 3 delta^2, to round-off (NGP)."""
+    pos, bins, sub = lattice()
+    delta = 0.07
+    mean = np.array([bin_velocity(i, j) for i, j in bins])
+    vel = mean + fluctuations(sub, delta)
+    s = bin_sums(GRID, pos, vel, np.full(len(pos), DP), "ngp")
+    acc = TimeAverage(GRID, RHO_P)
+    acc.add(0.0, s)
+    r = acc.result("cell")
+    per_bin = 4 * 3 * 4
+    alpha = per_bin * VP / (HX * HZ * D)
+    assert np.allclose(r["alpha_p"][:, :3], alpha, rtol=1e-13, atol=0)
+    assert np.all(r["alpha_p"][:, 3:] == 0.0)
+    for i in range(BINS[0]):
+        for j in range(3):
+            assert np.allclose(r["mass_flux"][i, j], RHO_P * alpha * bin_velocity(i, j), rtol=1e-12, atol=1e-12)
+            assert np.allclose(r["velocity"][i, j], bin_velocity(i, j), rtol=1e-12, atol=1e-13)
+    assert np.allclose(r["q2"][:, :3], 3 * delta**2, rtol=1e-12, atol=0)
+    assert np.all(r["q2"][:, 3:] == 0.0)
+
+
+def test_cic_uniform_bed_and_volume_conservation():
+    """CIC with folding: a bed uniform within bins stays exactly uniform, walls included; volume conserved."""
+    pos, bins, sub = lattice(m=(2, 1, 2), rows=BINS[1])  # fills the box
+    vel = np.tile([0.1, 0.0, -0.2], (len(pos), 1))
+    s = bin_sums(GRID, pos, vel, np.full(len(pos), DP), "cic")
+    alpha = 4 * VP / (HX * HZ * D)
+    assert np.allclose(s.s0 / GRID.bin_volume, alpha, rtol=1e-13)
+    # a random cloud: the deposited volume is the particles' volume whatever the positions
+    rng = np.random.default_rng(1)
+    p = rng.uniform([0, 0, 0], [L, D, H], size=(500, 3))
+    d = rng.uniform(0.5e-3, 2e-3, 500)
+    s = bin_sums(GRID, p, rng.normal(size=(500, 3)), d, "cic")
+    assert abs(s.s0.sum() - (math.pi / 6 * d**3).sum()) <= 1e-14 * s.s0.sum()
+
+
+def test_depth_average_independent_of_y_distribution():
+    """The bin spans the whole depth: moving particles along y changes nothing (exactly)."""
+    pos, _, sub = lattice()
+    vel = fluctuations(sub, 0.1) + 0.5
+    a = bin_sums(GRID, pos, vel, np.full(len(pos), DP))
+    squeezed = pos.copy()
+    squeezed[:, 1] = 0.1 * D + 0.2 * squeezed[:, 1]  # all in the back fifth of the bed
+    b = bin_sums(GRID, squeezed, vel, np.full(len(pos), DP))
+    for f in ("s0", "s1", "s2", "q"):
+        assert np.array_equal(getattr(a, f), getattr(b, f))
+
+
+def test_time_average_and_agitation_definitions():
+    """Two snapshots with different beds: arithmetic means of alpha and flux; q^2 'cell' vs 'window'."""
+    pos, bins, sub = lattice()
+    n = len(pos)
+    u1, u2 = np.array([0.0, 0.0, 0.4]), np.array([0.2, 0.0, -0.6])
+    acc = TimeAverage(GRID, RHO_P)
+    acc.add(0.0, bin_sums(GRID, pos, np.tile(u1, (n, 1)), np.full(n, DP)))
+    half = sub[:, 2] < 2  # the second snapshot keeps the lower half of each bin's particles only
+    acc.add(0.1, bin_sums(GRID, pos[half], np.tile(u2, (half.sum(), 1)), np.full(half.sum(), DP)))
+    alpha1 = 48 * VP / GRID.bin_volume
+    cell, window = acc.result("cell"), acc.result("window")
+    assert np.allclose(cell["alpha_p"][:, :3], 0.75 * alpha1, rtol=1e-13)
+    assert np.allclose(cell["mass_flux"][:, :3], RHO_P * alpha1 * (u1 + 0.5 * u2) / 2, rtol=1e-12, atol=1e-12)
+    assert np.allclose(cell["q2"], 0.0, atol=1e-15)  # uniform velocity in each snapshot
+    # window: volume-weighted mean U = (2 u1 + u2)/3, variance about it
+    U = (2 * u1 + u2) / 3
+    q2 = (2 * np.sum((u1 - U) ** 2) + np.sum((u2 - U) ** 2)) / 3
+    assert np.allclose(cell["velocity"][:, :3], U, rtol=1e-12, atol=1e-14)
+    assert np.allclose(window["q2"][:, :3], q2, rtol=1e-10)
+
+
+def test_run_folder_window_rank_order_and_incomplete_files(tmp_path):
+    """From files: window selection, snapshot order of the ranks irrelevant (bitwise), missing/half files skipped."""
+    pos, bins, sub = lattice()
+    n = len(pos)
+    snaps = []
+    for k in range(6):
+        vel = np.array([bin_velocity(i, j) for i, j in bins]) * (1 + 0.1 * k) + fluctuations(sub, 0.01 * k)
+        snaps.append((0.05 * k, pos, vel))
+    a = make_run(tmp_path / "a", snaps)
+    # the same particles gathered in another order (as from 2 ranks), plus a listed file not yet written and a
+    # half-written one after the window
+    perm = np.random.default_rng(3).permutation(n)
+    b_snaps = [(t, p[perm], v[perm], perm) for t, p, v in snaps]
+    b_snaps[1:1] = [(0.025, pos, snaps[0][2])]
+    b = make_run(tmp_path / "b", b_snaps, missing={1})
+    assert len(list_snapshots(b)) == 6
+    fa = average_fields(a, window=(0.1, 0.2), bins=BINS)
+    fb = average_fields(b, window=(0.1, 0.2), bins=BINS)
+    assert fa.times == pytest.approx([0.1, 0.15, 0.2]) and fb.times == fa.times
+    for name in ("alpha_p", "mass_flux", "velocity", "q2"):
+        assert np.array_equal(getattr(fa, name), getattr(fb, name)), name
+    # the average equals the mean of the three snapshots' exact fields
+    alpha = 48 * VP / GRID.bin_volume
+    for i in range(BINS[0]):
+        for j in range(3):
+            U = bin_velocity(i, j) * (1 + 0.1 * np.array([2, 3, 4])[:, None])
+            assert np.allclose(fa.mass_flux[i, j], RHO_P * alpha * U.mean(axis=0), rtol=1e-12, atol=1e-12)
+    assert np.allclose(fa.q2[:, :3], 3 * (0.01**2 * (4 + 9 + 16)) / 3, rtol=1e-10)
+    # a half-written file is skipped with a warning, not an error
+    c = make_run(tmp_path / "c", snaps, corrupt={5})
+    assert read_snapshot(c / "particles" / "particles_000005.vtp") is None
+    fc = average_fields(c, window=(0.1, 0.25), bins=BINS)
+    assert fc.times == pytest.approx([0.1, 0.15, 0.2])
+
+
+def test_profile_interpolates_between_rows(tmp_path):
+    """A flux linear in z: the profile at any height is exact; at z/H = 0.092 too."""
+    pos, bins, sub = lattice(m=(2, 1, 2), rows=BINS[1])
+    n = len(pos)
+    vel = np.zeros((n, 3))
+    zc = (bins[:, 1] + 0.5) * HZ
+    vel[:, 2] = 0.3 + 2.0 * zc  # the same in each bin: linear across bin centres
+    run = make_run(tmp_path / "r", [(0.0, pos, vel)])
+    f = average_fields(run, bins=BINS)
+    alpha = 4 * VP / GRID.bin_volume
+    for z in (HZ / 2, 0.1, 0.17, H - HZ / 2):
+        x, prof = f.profile("mass_flux_z", z)
+        assert np.allclose(prof, RHO_P * alpha * (0.3 + 2.0 * z), rtol=1e-12)
+    # below the first row of centres (z/H = 0.092 here) and above the last: the nearest row
+    assert np.allclose(f.profile("mass_flux_z", 0.092 * H)[1], RHO_P * alpha * (0.3 + HZ), rtol=1e-12)
+    assert np.allclose(f.profile("mass_flux_z", H)[1], RHO_P * alpha * (0.3 + 2 * H - HZ), rtol=1e-12)
+    with pytest.raises(ValueError, match="height"):
+        f.profile("mass_flux_z", 2 * H)
+    with pytest.raises(ValueError, match="quantity"):
+        f.profile("flux", 0.1)
+
+
+def test_post_run_writes_tables_and_figures(tmp_path):
+    """`post_run` on a fake run with probes: files, the summary numbers and the normalised profile."""
+    pos, bins, sub = lattice()
+    vel = np.array([bin_velocity(i, j) for i, j in bins])
+    run = make_run(tmp_path / "r", [(0.1 * k, pos, vel) for k in range(4)])
+    w_a = (RHO_P - RHO_G) * 9.81 * len(pos) * VP / (L * D)
+    t = np.linspace(0, 0.3, 31)
+    dp = w_a * (1 + 0.1 * np.sin(40 * t))
+    with open(run / "probes.csv", "w") as fh:
+        fh.write("time,particles,bed_height,dp_bed\n")
+        for tt, p in zip(t, dp, strict=True):
+            fh.write(f"{tt!r},{len(pos)},0.15,{p!r}\n")
+    res = post_run(run, window=(0.1, 0.3), bins=BINS)
+    names = {f.name for f in res.files}
+    assert {"fields.csv", "fields.npz", "profile_zH0.092.csv", "summary.csv", "timeseries.csv"} <= names
+    assert {"fields.png", "profile_zH0.092.png", "timeseries.png"} <= names
+    sel = (t >= 0.1 - 1e-12) & (t <= 0.3 + 1e-12)
+    assert res.summary.dp_mean == pytest.approx(dp[sel].mean(), rel=1e-12)
+    assert res.summary.weight_per_area == pytest.approx(w_a, rel=1e-12)
+    assert res.values["bed_height_over_H"] == pytest.approx(0.15 / H, rel=1e-12)
+    prof = np.loadtxt(run / "post" / "profile_zH0.092.csv", delimiter=",", skiprows=1)
+    alpha = 48 * VP / GRID.bin_volume  # z/H = 0.092 lies in the first bin row (below its centre)
+    expect = [RHO_P * alpha * bin_velocity(i, 0)[2] / (RHO_G * UF) for i in range(BINS[0])]
+    assert np.allclose(prof[:, 4], expect, rtol=1e-8)
+
+
+def test_bad_arguments(tmp_path):
+    pos, _, _ = lattice()
+    run = make_run(tmp_path / "r", [(0.0, pos, np.zeros_like(pos))])
+    with pytest.raises(ValueError, match="kernel"):
+        average_fields(run, kernel="sph")
+    with pytest.raises(ValueError, match="bins"):
+        average_fields(run, bins=(0, 3))
+    with pytest.raises(ValueError, match="window"):
+        average_fields(run, window=(2.0, 3.0))
+    with pytest.raises(ValueError, match="agitation"):
+        average_fields(run, agitation="favre")
+    with pytest.raises(ValueError, match="run_dir"):
+        post_run(tmp_path)
