@@ -13,8 +13,11 @@ density cancels out of m_p/τ_p. Written with C_D Re_p (finite at zero slip) so 
 Coarse-grained particles representing n_orig originals: K = n_orig * law(eps, slip, d_orig, ...), i.e. the
 drag of the parcel is n_orig times that of one original particle at the parcel's velocity (`drag_kernel`).
 
-Adding a law is one function and one decorator line: `@DRAG_LAWS.register("name")` over an
-`@njit(cache=True)` function with the signature above.
+Adding a law is one function with the signature above under `@DRAG_LAWS.register("name")` and
+`@njit(cache=True)`, plus one branch in `law_value`. The batched kernels select the law by its index in
+`LAW_ORDER` rather than taking the law function as an argument: Numba types a function argument by the
+identity of its dispatcher, which differs in every process, so kernels taking one were recompiled in every
+process and their on-disk cache index grew until it could no longer be written.
 """
 
 from __future__ import annotations
@@ -147,8 +150,47 @@ def emms(eps, slip, d, rho_g, mu_g):
     return _k_from_cd_re(cd_re * eps**-2.65 * emms_heterogeneity(eps, re), d, mu_g)
 
 
+LAW_ORDER = ("stokes", "schiller-naumann", "wen-yu", "ergun", "gidaspow-blend", "emms")
+
+
 @njit(cache=True)
+def law_value(law_id, eps, slip, d, rho_g, mu_g):
+    """K (kg/s) of drag law number `law_id` in LAW_ORDER (the batched kernels' dispatch)."""
+    if law_id == 0:
+        return stokes(eps, slip, d, rho_g, mu_g)
+    if law_id == 1:
+        return schiller_naumann(eps, slip, d, rho_g, mu_g)
+    if law_id == 2:
+        return wen_yu(eps, slip, d, rho_g, mu_g)
+    if law_id == 3:
+        return ergun(eps, slip, d, rho_g, mu_g)
+    if law_id == 4:
+        return gidaspow_blend(eps, slip, d, rho_g, mu_g)
+    return emms(eps, slip, d, rho_g, mu_g)
+
+
+def law_index(law) -> int:
+    """Index in LAW_ORDER of a drag law given by name or as the registered function."""
+    if isinstance(law, str):
+        get_drag_law(law)  # ValueError listing the valid names
+        name = law
+    else:
+        names = [n for n in LAW_ORDER if DRAG_LAWS.get(n) is law]
+        if not names:
+            raise ValueError(f"law: {law!r} is not a registered drag law ({', '.join(LAW_ORDER)})")
+        name = names[0]
+    if name not in LAW_ORDER:
+        raise ValueError(f"drag law {name!r} has no branch in febed.coupling.drag.law_value: add one")
+    return LAW_ORDER.index(name)
+
+
 def drag_kernel(law, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
+    """`_drag_kernel` for a law given by name or function (see there)."""
+    _drag_kernel(law_index(law), eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F)
+
+
+@njit(cache=True)
+def _drag_kernel(law_id, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
     """Per-particle exchange coefficient K (N,) (kg/s) and drag force F (N, 3) (N) for any drag law.
 
     K_p = n_orig,p law(ε_@p, |u_@p - v_p|, d_orig,p, ρ_g, μ_g) and F_p = K_p (u_@p - v_p) (seed 001 eq 20);
@@ -164,7 +206,7 @@ def drag_kernel(law, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
         s1 = u[p, 1] - v[p, 1]
         s2 = u[p, 2] - v[p, 2]
         slip = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        k = n_orig[p] * law(eps[p], slip, d_orig[p], rho_g, mu_g)
+        k = n_orig[p] * law_value(law_id, eps[p], slip, d_orig[p], rho_g, mu_g)
         K[p] = k
         F[p, 0] = k * s0
         F[p, 1] = k * s1
@@ -208,9 +250,14 @@ def drag_forces(law, eps, u, v, d_orig, n_orig, rho_g: float, mu_g: float, K=Non
     return K, F
 
 
+def gas_forces_kernel(law, *args):
+    """`_gas_forces` for a law given by name or function (see there)."""
+    _gas_forces(law_index(law), *args)
+
+
 @njit(cache=True)
-def gas_forces_kernel(
-    law, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
+def _gas_forces(
+    law_id, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
     F_p, eps_p,
 ):  # fmt: skip
     """Fused per-sub-step kernel: interpolate u, ε, ∇p (seed 001 eq 28), then drag (eq 20) and -V_p ∇p (eq 27).
@@ -250,7 +297,7 @@ def gas_forces_kernel(
         s2 = u2 - v[p, 2]
         k = 0.0
         if e > 0.0:
-            k = n_orig[p] * law(e, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), d_orig[p], rho_g, mu_g)
+            k = n_orig[p] * law_value(law_id, e, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), d_orig[p], rho_g, mu_g)
         K[p] = k
         F_d[p, 0] = k * s0
         F_d[p, 1] = k * s1
