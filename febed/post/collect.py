@@ -1,0 +1,181 @@
+"""The comparison of a study's members (`febed study`, `febed.study.collect`): one table, a few figures.
+
+Per member, over the study's window (default: the last half of that member's output):
+
+* mean and standard deviation of the bed pressure drop `dp_bed`, its ratio to the buoyant bed weight per
+  cross-section, mean and standard deviation of the bed height (probes);
+* from the particle output (unless fields=False): the time-averaged vertical solid mass flux / ρU_f at
+  z/H = `height`, in the centre (x/L = 0.5) and next to the side walls (mean over the outer 10 % of each
+  side), and the whole profile for an overlay figure (seed 001 Figs 13, 18).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from febed.post.rundata import list_snapshots, run_info, select_window
+from febed.post.series import read_series, summarize, weight_per_area
+
+
+def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict, tuple | None]:
+    from febed.study import read_status
+
+    row = {"member": m.name, "state": state}
+    row.update({k: m.values.get(k, "") for k in study.parameters})
+    nan = math.nan
+    row.update({
+        "t_reached": nan, "dp_bed_mean": nan, "dp_bed_std": nan, "weight_per_area": nan, "dp_bed_over_weight": nan,
+        "bed_height_mean": nan, "bed_height_std": nan, "bed_height_over_H": nan, "snapshots": 0,
+        "flux_centre/rhoUf": nan, "flux_walls/rhoUf": nan,
+    })  # fmt: skip
+    if state == "new":
+        return row, None
+    try:
+        info = run_info(m.directory)
+    except ValueError:
+        return row, None
+    series = read_series(m.directory)
+    try:
+        snaps = list_snapshots(m.directory)
+    except ValueError:
+        snaps = []
+    status = read_status(m.directory) or {}
+    t_last = max([float(series["time"][-1])] if series.get("time") is not None and series["time"].size else [nan])
+    if snaps:
+        t_last = max(t_last, snaps[-1][0]) if math.isfinite(t_last) else snaps[-1][0]
+    row["t_reached"] = float(status.get("time", t_last))
+    window = study.window
+    if window is None and math.isfinite(t_last):
+        t_first = float(series["time"][0]) if series.get("time") is not None else snaps[0][0]
+        window = (t_first + 0.5 * (t_last - t_first), t_last)
+    profile = None
+    volume = nan
+    if fields and snaps:
+        from febed.post.fields import average_fields
+
+        try:
+            select_window(snaps, window)
+            avg = average_fields(m.directory, window=window)
+        except ValueError:
+            avg = None
+        if avg is not None:
+            volume = avg.solid_volume
+            s = avg.scales()
+            x, fz = avg.profile("mass_flux_z", height * info.height)
+            xl = (x - avg.grid.lo[0]) / s["L"]
+            f = fz / s["rhoU_f"]
+            row["flux_centre/rhoUf"] = float(np.interp(0.5, xl, f))
+            walls = (xl < 0.1) | (xl > 0.9)
+            row["flux_walls/rhoUf"] = float(f[walls].mean()) if walls.any() else nan
+            row["snapshots"] = len(avg.times)
+            profile = (xl, f)
+    if not math.isfinite(volume) and series.get("particles") is not None and series["particles"].size:
+        volume = float(series["particles"][-1]) * math.pi / 6.0 * info.d_p**3
+    if series and window is not None:
+        sm = summarize(series, window, weight_per_area(info, volume))
+        row.update({
+            "dp_bed_mean": sm.dp_mean, "dp_bed_std": sm.dp_std, "weight_per_area": sm.weight_per_area,
+            "dp_bed_over_weight": sm.dp_ratio, "bed_height_mean": sm.bed_height_mean,
+            "bed_height_std": sm.bed_height_std, "bed_height_over_H": sm.bed_height_mean / info.height,
+        })  # fmt: skip
+    return row, profile
+
+
+def _numeric(values) -> bool:
+    return all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+
+
+def _figures(study, rows: list[dict], profiles: dict, height: float, out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    varied = [k for k, vals in study.parameters.items() if len(vals) > 1]
+    quantities = [
+        ("dp_bed_over_weight", r"$\overline{\Delta p_{bed}}/(W/A)$"),
+        ("bed_height_over_H", "bed height / H"),
+        ("flux_centre/rhoUf", f"solid flux/ρU_f, centre, z/H={height:g}"),
+        ("flux_walls/rhoUf", f"solid flux/ρU_f, walls, z/H={height:g}"),
+    ]
+    for p in varied:
+        vals = study.parameters[p]
+        numeric = _numeric(vals)
+        others = [k for k in varied if k != p]
+        fig, axes = plt.subplots(1, len(quantities), figsize=(3.2 * len(quantities), 3.2))
+        groups: dict[tuple, list[dict]] = {}
+        for r in rows:
+            if r.get(p, "") == "":
+                continue
+            groups.setdefault(tuple(r.get(k) for k in others), []).append(r)
+        for key, rs in groups.items():
+            rs = sorted(rs, key=lambda r: vals.index(r[p]) if r[p] in vals else 0)
+            xs = [r[p] if numeric else vals.index(r[p]) for r in rs]
+            label = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in zip(others, key, strict=True)) or None
+            for ax, (q, _) in zip(axes, quantities, strict=True):
+                ax.plot(xs, [r[q] for r in rs], marker="o", label=label)
+        for ax, (_, ylabel) in zip(axes, quantities, strict=True):
+            ax.set(xlabel=p, ylabel=ylabel)
+            if not numeric:
+                ax.set_xticks(range(len(vals)), [str(v) for v in vals], rotation=20)
+        axes[0].axhline(1.0, color="k", ls="--", lw=0.7)
+        if others:
+            axes[0].legend(fontsize=7)
+        fig.suptitle(f"study {study.name}: means over the averaging window", fontsize=9)
+        fig.tight_layout()
+        path = out / f"comparison_{p.replace('.', '_')}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        files.append(path)
+    if profiles:
+        fig, ax = plt.subplots(figsize=(5.5, 3.6))
+        for name, (xl, f) in profiles.items():
+            ax.plot(xl, f, marker="o", ms=2, label=name)
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set(xlabel="x/L", ylabel=r"$\overline{\langle\alpha_p\rho_p U_{p,z}\rangle}_{xz}/\rho U_f$", xlim=(0, 1))
+        ax.set_title(f"vertical solid mass flux at z/H = {height:g}", fontsize=9)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = out / "profiles_flux.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        files.append(path)
+    return files
+
+
+def compare_members(study, fields: bool = True, height: float = 0.092, out: Path | None = None):
+    """Collect every member's numbers into `out` (default <study directory>/comparison): CSV + figures."""
+    from febed.study import Comparison, member_states
+
+    if not 0.0 <= height <= 1.0:
+        raise ValueError(f"height: expected z/H in [0, 1], got {height}")
+    out = Path(out) if out is not None else study.directory / "comparison"
+    out.mkdir(parents=True, exist_ok=True)
+    rows, profiles = [], {}
+    for m, state in member_states(study):
+        row, prof = _member_row(study, m, state, fields, height)
+        rows.append(row)
+        if prof is not None:
+            profiles[m.name] = prof
+    path = out / "comparison.csv"
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    if profiles:
+        xl = next(iter(profiles.values()))[0]
+        same = all(len(p[0]) == len(xl) and np.allclose(p[0], xl) for p in profiles.values())
+        if same:
+            with open(out / "profiles_flux.csv", "w", newline="") as f:
+                w = csv.writer(f)
+                w.writerow(["x/L", *profiles])
+                for k in range(len(xl)):
+                    w.writerow([f"{xl[k]:.6g}", *(f"{p[1][k]:.6g}" for p in profiles.values())])
+    figs = _figures(study, rows, profiles, height, out)
+    return Comparison(rows=rows, csv=path, figures=figs, profiles=profiles)
