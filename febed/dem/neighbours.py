@@ -250,11 +250,16 @@ class PairList:
         """Number of pairs in the list."""
         return int(self.start[self.n])
 
-    def saved_history(self, gid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Sorted canonical keys and history of the pairs with non-zero history (before a rebuild)."""
-        if self.n == 0:
+    def saved_history(self, gid: np.ndarray, n_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Sorted canonical keys and history of the pairs with non-zero history (before a rebuild).
+
+        n_rows: only the pairs whose first row is below it (the owned rows: pairs between two ghosts are not
+        integrated, their history is stale); default all.
+        """
+        n = self.n if n_rows is None else min(int(n_rows), self.n)
+        if n == 0:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-        keys, vals = pair_keys(self.start, self.nbr, gid, self.n, self.hist, True)
+        keys, vals = pair_keys(self.start, self.nbr, gid, n, self.hist, True)
         order = np.argsort(keys)
         return keys[order], vals[order]
 

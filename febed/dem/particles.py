@@ -10,6 +10,9 @@ Particles are identified by `gid` (int64, unique and never reused on this proces
 `next_gid`, which the parallel layer offsets per rank). Contact history is not stored here: it is kept per
 contact pair by the neighbour list, keyed by the two gids (see `febed.dem.neighbours`), so reordering,
 removing or migrating particles never scrambles it.
+
+Auxiliary per-particle arrays (`attach`, `aux`) follow the owned rows through reordering, removal and MPI
+migration: callers keep per-particle state there (e.g. the coupling's frozen drag) instead of by row.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ class Particles:
         self.n_owned = 0
         self.n_ghost = 0
         self.next_gid = int(first_gid)
+        self._aux: dict[str, np.ndarray] = {}
         self._alloc(int(capacity))
 
     # ------------------------------------------------------------------ storage
@@ -60,6 +64,10 @@ class Particles:
             n = self.n
             for name in FIELDS:
                 data[name][:n] = old[name][:n]
+        for name, a in self._aux.items():
+            b = np.zeros((capacity, a.shape[1]))
+            b[: min(a.shape[0], capacity)] = a[:capacity]
+            self._aux[name] = b
         self._data = data
         self.capacity = capacity
 
@@ -81,6 +89,28 @@ class Particles:
         if data is not None and name in data:
             return data[name][: self.n_owned + self.n_ghost]
         raise AttributeError(f"Particles has no attribute {name!r}")
+
+    def attach(self, name: str, ncomp: int = 1) -> np.ndarray:
+        """Add (if missing) an auxiliary float array of `ncomp` columns that follows the rows; returns `aux(name)`."""
+        if not name or not isinstance(name, str):
+            raise ValueError(f"name must be a non-empty string, got {name!r}")
+        if ncomp < 1:
+            raise ValueError(f"ncomp must be >= 1, got {ncomp}")
+        a = self._aux.get(name)
+        if a is None or a.shape[1] != ncomp:
+            self._aux[name] = np.zeros((self.capacity, int(ncomp)))
+        return self.aux(name)
+
+    def aux(self, name: str) -> np.ndarray:
+        """View (n, ncomp) of the auxiliary array `name` (rows as the particle arrays; ghost rows are zero)."""
+        if name not in self._aux:
+            raise ValueError(f"no auxiliary array {name!r}; attached: {sorted(self._aux)}")
+        return self._aux[name][: self.n_owned + self.n_ghost]
+
+    @property
+    def aux_names(self) -> list[str]:
+        """Names of the attached auxiliary arrays."""
+        return list(self._aux)
 
     def full(self, name: str) -> np.ndarray:
         """The whole capacity-sized array of field `name` (for kernels that need fixed storage)."""
@@ -126,6 +156,8 @@ class Particles:
         D["n_orig"][s] = n_orig
         D["cell"][s] = -1
         D["material"][s] = material
+        for a in self._aux.values():
+            a[s] = 0.0
         self.next_gid += k
         self.n_owned += k
         return gids
@@ -159,7 +191,38 @@ class Particles:
         for name in FIELDS:
             a = self._data[name]
             a[:k] = a[idx]
+        for a in self._aux.values():
+            a[:k] = a[idx]
         self.n_owned = k
+
+    def pack(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """Copies of owned rows `idx`: every field and auxiliary array ("aux:<name>"), for migration."""
+        idx = np.asarray(idx, dtype=np.int64)
+        out = {name: self._data[name][idx] for name in FIELDS}
+        for name, a in self._aux.items():
+            out[f"aux:{name}"] = a[idx]
+        return out
+
+    def keep(self, idx: np.ndarray) -> None:
+        """Keep only the owned rows `idx` (in that order); drops ghosts."""
+        idx = np.asarray(idx, dtype=np.int64)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.n_owned):
+            raise ValueError("idx must be in [0, n_owned)")
+        self.n_ghost = 0
+        self._take(idx)
+
+    def append(self, data: dict[str, np.ndarray]) -> None:
+        """Append owned rows given by `pack` output (gids kept as they are); drops ghosts."""
+        k = np.asarray(data["pos"]).shape[0]
+        self.n_ghost = 0
+        self.reserve(self.n_owned + k)
+        s = slice(self.n_owned, self.n_owned + k)
+        for name in FIELDS:
+            if name in data:
+                self._data[name][s] = data[name]
+        for name, a in self._aux.items():
+            a[s] = data.get(f"aux:{name}", 0.0)
+        self.n_owned += k
 
     def set_ghosts(self, **fields: np.ndarray) -> None:
         """Replace the ghost rows by the given arrays (pos, vel, omega, diameter, mass, inertia, gid, ...)."""
@@ -171,6 +234,8 @@ class Particles:
         s = slice(self.n_owned, self.n_owned + k)
         for name in FIELDS:
             self._data[name][s] = fields[name] if name in fields else 0
+        for a in self._aux.values():
+            a[s] = 0.0
         self.n_ghost = k
 
     # ------------------------------------------------------------------ save / load

@@ -3,6 +3,12 @@
 This is the one entry point the pure-DEM driver and the coupled loop call. Row order of the particle
 arrays may change inside `advance` (particles are sorted by linked cell for memory locality when the pair
 list is rebuilt): identify particles by `particles.gid`, and pass `f_ext` in the current row order.
+
+With MPI, `attach_exchange` gives the DEM a `febed.parallel.ParticleExchange`, its only contact with ranks:
+`advance` then steps stage by stage (ghost rows refreshed before every force evaluation, the rebuild
+decision taken over all ranks, particles migrating at rebuilds with their history and auxiliary arrays),
+and every call that changes or reads the global state (advance, rebuild, dt, the energies) is collective.
+Without an exchange the serial loop runs unchanged, compiled over many steps.
 """
 
 from __future__ import annotations
@@ -13,7 +19,10 @@ import numpy as np
 
 from febed.dem.contact import ContactLaw, get_law, stiffness_from_material
 from febed.dem.forces import compute_forces
-from febed.dem.integrate import critical_time, get_integrator
+from febed.dem.integrate import (
+    critical_time,
+    get_integrator,
+)
 from febed.dem.neighbours import (
     PairList,
     carry_wall_history,
@@ -103,8 +112,8 @@ class DEM:
         self.max_overlap = 0.0  # largest overlap / diameter seen since the last reset
         self._dirty = True
         self._forces_valid = False
-        self._fext = np.zeros((0, 3))
         self._dt = None
+        self.exchange = None  # febed.parallel.ParticleExchange when running on several ranks
         self._saved = None  # contact history keyed by gid pairs, carried over a change of rows
         self._lists_valid = False  # pair and wall lists index the current rows
         self._since_sort = 0
@@ -162,10 +171,35 @@ class DEM:
 
     # ------------------------------------------------------------------ time step
     def critical_time(self) -> float:
-        """Contact time T_C (s) of the stiffest, lightest pair type present (seed 001 eq 19)."""
+        """Contact time T_C (s) of the stiffest, lightest pair type present (seed 001 eq 19; collective with MPI)."""
         P = self.particles
-        return critical_time(self.law, self.pp, self.pw, P.mass[: P.n_owned], P.diameter[: P.n_owned],
-                             self.params.rotation, self.walls.count > 0)  # fmt: skip
+        m, d = P.mass[: P.n_owned], P.diameter[: P.n_owned]
+        if self.exchange is not None:
+            two = np.argsort(m)[:2]
+            m, d = self.exchange.concat(m[two]), self.exchange.concat(d[two])
+        return critical_time(self.law, self.pp, self.pw, m, d, self.params.rotation, self.walls.count > 0)
+
+    # ------------------------------------------------------------------ MPI
+    def attach_exchange(self, exchange, distribute: bool = False) -> None:
+        """Run on several ranks through `exchange` (a `febed.parallel.ParticleExchange`; collective).
+
+        distribute: every rank holds the same particles now; keep only this rank's share.
+        """
+        self.save_history()
+        self.exchange = exchange
+        if distribute:
+            exchange.distribute(self.particles)
+            self._saved = None
+        else:
+            exchange.set_next_gid(self.particles)
+        self.touch()
+        self._dt = None
+
+    def _global_max(self, x: float) -> float:
+        return self.exchange.max(x) if self.exchange is not None else x
+
+    def _global_sum(self, x: float) -> float:
+        return self.exchange.sum(x) if self.exchange is not None else x
 
     @property
     def dt(self) -> float:
@@ -175,9 +209,14 @@ class DEM:
         return self._dt
 
     # ------------------------------------------------------------------ neighbour lists
-    def _skin(self) -> float:
+    def _dmax(self) -> float:
         P = self.particles
-        return self.params.skin * float(P.diameter.max()) if P.n else 1e-12
+        d = float(P.diameter[: P.n_owned].max()) if P.n_owned else 0.0
+        return self._global_max(d)
+
+    def _skin(self) -> float:
+        d = self._dmax()
+        return self.params.skin * d if d > 0 else 1e-12
 
     def rebuild(self) -> None:
         """Rebuild the pair and wall lists, keeping the contact history.
@@ -185,6 +224,9 @@ class DEM:
         Every `sort_every` builds (or when rows changed anyway) the particles are first sorted by linked cell
         for memory locality; otherwise the history is merged row by row (no key search).
         """
+        if self.exchange is not None:
+            self._rebuild_parallel()
+            return
         P = self.particles
         n = P.n
         p = self.params
@@ -200,9 +242,7 @@ class DEM:
         if sort:
             lo, size, dims = grid_of(P.pos, n, 2.0 * skin / p.skin)
             perm = np.argsort(cell_index(P.pos, n, lo, size, dims), kind="stable")
-            P.reorder(perm)
-            if self._fext.shape[0] == n:
-                self._fext[:] = self._fext[perm]
+            P.reorder(perm)  # auxiliary arrays (the external force) follow
             self._since_sort = 0
         else:
             self._since_sort += 1
@@ -223,16 +263,53 @@ class DEM:
         self._dirty = False
         self._lists_valid = True
 
+    def _rebuild_parallel(self) -> None:
+        """Collective rebuild: migrate (with history), sort the owned rows, refresh the ghosts, build the lists."""
+        P = self.particles
+        p = self.params
+        ex = self.exchange
+        self.save_history()
+        saved, wsaved = self._saved if self._saved is not None else (None, None)
+        self._saved = None
+        saved, wsaved = ex.migrate(P, saved, wsaved)
+        dmax = self._dmax()
+        skin = p.skin * dmax if dmax > 0 else 1e-12
+        n = P.n_owned
+        due = self._since_sort + 1 >= p.sort_every or self.pairs.builds == 0
+        if p.sort and n > 1 and due and np.all(np.isfinite(P.pos)):
+            lo, size, dims = grid_of(P.pos, n, 2.0 * dmax)
+            P.reorder(np.argsort(cell_index(P.pos, n, lo, size, dims), kind="stable"))
+            self._since_sort = 0
+        else:
+            self._since_sort += 1
+        ex.refresh_ghosts(P, dmax + skin)
+        n = P.n
+        self.pairs.skin = skin
+        self.pairs.build(P.pos, 0.5 * P.diameter, P.gid, saved, same_rows=False)
+        self._build_walls(skin)
+        if wsaved is not None:
+            restore_wall_history(self.wstart, self.wid, P.gid, n, wsaved[0], wsaved[1], self.whist)
+        else:
+            self.whist[:] = 0.0
+        self.pos_ref = P.pos.copy()
+        self._dirty = False
+        self._lists_valid = True
+
     def save_history(self) -> None:
         """Key the contact history by gid pairs now; call before changing particle rows from outside."""
         P = self.particles
         if self._saved is not None or not self._lists_valid or self.pairs.n != P.n:
             return
-        saved = self.pairs.saved_history(P.gid)
-        keys, vals = wall_keys(self.wstart, self.wid, P.gid, P.n, self.whist)
-        order = np.argsort(keys)
-        self._saved = (saved, (keys[order], vals[order]))
+        self._saved = self._history_keys()
         self._lists_valid = False
+
+    def _history_keys(self):
+        """Pair and wall history keyed by gids, of the contacts of owned particles (ghost pairs are not integrated)."""
+        P = self.particles
+        saved = self.pairs.saved_history(P.gid, P.n_owned)
+        keys, vals = wall_keys(self.wstart, self.wid, P.gid, P.n_owned, self.whist)
+        order = np.argsort(keys)
+        return saved, (keys[order], vals[order])
 
     def _build_walls(self, skin: float) -> None:
         """New particle-wall candidate lists (fresh arrays: the old ones may still be needed for the history)."""
@@ -277,19 +354,21 @@ class DEM:
         dt = self.dt if dt is None else float(dt)
         if not dt > 0:
             raise ValueError(f"dt must be > 0, got {dt}")
+        if f_ext is not None:
+            f_ext = np.asarray(f_ext, dtype=float)
+            if f_ext.shape != (P.n_owned, 3):
+                raise ValueError(f"f_ext must have shape ({P.n_owned}, 3), got {f_ext.shape}")
+        if self.exchange is not None:
+            self._advance_parallel(n_steps, dt, f_ext)
+            return
         if P.n_owned == 0:
             self.time += n_steps * dt
             self.steps += n_steps
             return
-        if self._fext.shape[0] != P.n:
-            self._fext = np.zeros((P.n, 3))
-        if f_ext is None:
-            self._fext[:] = 0.0
-        else:
-            f_ext = np.asarray(f_ext, dtype=float)
-            if f_ext.shape != (P.n_owned, 3):
-                raise ValueError(f"f_ext must have shape ({P.n_owned}, 3), got {f_ext.shape}")
-            self._fext[: P.n_owned] = f_ext
+        fext = P.attach("_fext", 3)  # an auxiliary array: it follows the rows when they are sorted
+        fext[:] = 0.0
+        if f_ext is not None:
+            fext[: P.n_owned] = f_ext
         if self._dirty:
             self.rebuild()
         if self.integrator.needs_initial_forces and not self._forces_valid:
@@ -315,11 +394,41 @@ class DEM:
         p = self.params
         args = (
             n_steps, dt, P.pos, P.vel, P.omega, P.force, P.torque, P.diameter, P.mass, P.inertia, P.n_owned, P.n,
-            self._fext, self.pos_ref, 0.5 * pl.skin, pl.start, pl.nbr, pl.hist, self.wstart, self.wid, self.whist,
+            P.aux("_fext"), self.pos_ref, 0.5 * pl.skin, pl.start, pl.nbr, pl.hist, self.wstart, self.wid, self.whist,
             W.plane_p, W.plane_n, W.facets, W.nv, self.pp, self.pw, p.rotation, self.gvec, p.dim == 2, resume,
         )  # fmt: skip
         s = self._scratch(P.n, pl.hist.shape[0], self.whist.shape[0])
         return self.integrator.steps(*args, *s)
+
+    def _advance_parallel(self, n_steps: int, dt: float, f_ext) -> None:
+        """`advance` with ghosts: the same kernels as the serial loop, split at each force evaluation (collective)."""
+        ex = self.exchange
+        P = self.particles
+        fext = P.attach("_fext", 3)
+        fext[:] = 0.0
+        if f_ext is not None:
+            fext[: P.n_owned] = f_ext
+        if ex.any(self._dirty):
+            self.rebuild()
+        if n_steps == 0:
+            return
+        verlet = self.integrator.name == "verlet"
+        if verlet and ex.any(not self._forces_valid):
+            ex.update_ghosts(P, P.vel, P.omega)
+            self.compute_forces()
+        d = float(P.diameter[: P.n_owned].min()) if P.n_owned else np.inf
+        dmin = ex.min(d)
+        worst = self.integrator.staged(self, n_steps, dt)
+        self.max_overlap = max(self.max_overlap, worst / dmin)
+        self._forces_valid = True
+        self.time += n_steps * dt
+        self.steps += n_steps
+
+    def kernel_args(self):
+        """Particles, walls, pair list and scratch arrays for the current rows (refetch after a rebuild)."""
+        P = self.particles
+        pl = self.pairs
+        return P, self.walls, pl, self._scratch(P.n, pl.hist.shape[0], self.whist.shape[0])
 
     def _scratch(self, n: int, npairs: int, nwall: int):
         s = getattr(self, "_rk2_scratch", None)
@@ -338,9 +447,10 @@ class DEM:
         saved (the parallel layer rebuilds them).
         """
         P = self.particles
-        if P.n_ghost:
-            self.save_history()  # lists index ghost rows: keep the history by gid pairs only
         s = {f"p_{k}": v for k, v in P.to_dict().items()}
+        for name in P.aux_names:
+            if not name.startswith("_"):
+                s[f"aux_{name}"] = P.aux(name)[: P.n_owned].copy()
         s["p_next_gid"] = int(P.next_gid)
         keep_lists = self._lists_valid and self.pairs.n == P.n and P.n_ghost == 0
         s["lists_valid"] = int(keep_lists)
@@ -355,9 +465,12 @@ class DEM:
             s["w_hist"] = self.whist.copy()
         s["pl_builds"] = int(self.pairs.builds)
         s["pl_skin"] = float(self.pairs.skin)
-        s["has_saved"] = int(self._saved is not None)
-        if self._saved is not None:
-            (k, v), (wk, wv) = self._saved
+        saved = self._saved
+        if saved is None and not keep_lists and self._lists_valid and self.pairs.n == P.n:
+            saved = self._history_keys()  # lists index ghost rows: keep the history by gid pairs only
+        s["has_saved"] = int(saved is not None)
+        if saved is not None:
+            (k, v), (wk, wv) = saved
             s.update(saved_keys=k.copy(), saved_vals=v.copy(), saved_wkeys=wk.copy(), saved_wvals=wv.copy())
         s["pos_ref"] = self.pos_ref[: P.n_owned].copy()
         s["dirty"] = int(self._dirty or not keep_lists)
@@ -377,6 +490,10 @@ class DEM:
         data = {k[2:]: np.asarray(v) for k, v in state.items() if k.startswith("p_") and k != "p_next_gid"}
         P = Particles.from_dict(data)
         P.next_gid = max(int(state.get("p_next_gid", P.next_gid)), P.next_gid)
+        for k, v in state.items():
+            if k.startswith("aux_"):
+                v = np.asarray(v, dtype=float).reshape(P.n_owned, -1)
+                P.attach(k[4:], v.shape[1])[:] = v
         self.particles = P
         n = P.n
         self.pairs = PairList(skin=float(state.get("pl_skin", 1e-12)))
@@ -407,37 +524,42 @@ class DEM:
         self.time = float(state["time"])
         self.steps = int(state["steps"])
         self.max_overlap = float(state.get("max_overlap", 0.0))
-        self._fext = np.zeros((0, 3))
 
     # ------------------------------------------------------------------ diagnostics
     def kinetic_energy(self) -> float:
-        """Kinetic energy (J) of the owned particles, translation + rotation."""
-        return self.particles.kinetic_energy()
+        """Kinetic energy (J) of the particles (of every rank: collective with MPI), translation + rotation."""
+        return self._global_sum(self.particles.kinetic_energy())
+
+    def count(self) -> int:
+        """Number of particles over all ranks (collective with MPI)."""
+        return int(self._global_sum(self.particles.n_owned))
 
     def mean_kinetic_energy(self) -> float:
-        """Mean kinetic energy per particle (J)."""
-        n = self.particles.n_owned
+        """Mean kinetic energy per particle (J; collective with MPI)."""
+        n = self.count()
         return self.kinetic_energy() / n if n else 0.0
 
     def elastic_energy(self) -> float:
-        """Energy (J) stored in the normal springs of the particle-particle and particle-wall contacts."""
+        """Energy (J) stored in the normal springs of the particle-particle and particle-wall contacts (collective)."""
         P = self.particles
         n = P.n_owned
         pl = self.pairs
-        if self._dirty:
+        if self.exchange.any(self._dirty) if self.exchange is not None else self._dirty:
             self.rebuild()
-        i = np.repeat(np.arange(pl.n), np.diff(pl.start))
-        j = pl.nbr[: pl.size]
+        m = int(pl.start[n])
+        i = np.repeat(np.arange(n), np.diff(pl.start[: n + 1]))
+        j = pl.nbr[:m]
         r = 0.5 * P.diameter
         delta = r[i] + r[j] - np.linalg.norm(P.pos[j] - P.pos[i], axis=1)
-        e = 0.5 * self.pp.kn * float(np.sum(np.maximum(delta, 0.0) ** 2))
+        share = np.where(j < n, 1.0, 0.5)  # a contact with a ghost is counted half here, half by its owner
+        e = 0.5 * self.pp.kn * float(np.sum(share * np.maximum(delta, 0.0) ** 2))
         if self.walls.count:
             dw = self.walls.distance(P.pos[:n])
             e += 0.5 * self.pw.kn * float(np.sum(np.maximum(r[:n] - dw, 0.0) ** 2))
-        return e
+        return self._global_sum(e)
 
     def potential_energy(self) -> float:
-        """Gravitational potential energy (J) relative to the origin."""
+        """Gravitational potential energy (J) relative to the origin (collective with MPI)."""
         P = self.particles
         n = P.n_owned
-        return -float(np.dot(P.mass[:n], P.pos[:n] @ self.gvec))
+        return self._global_sum(-float(np.dot(P.mass[:n], P.pos[:n] @ self.gvec)))

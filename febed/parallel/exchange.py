@@ -1,0 +1,336 @@
+"""The one interface through which the DEM meets MPI: ownership, migration, ghost particles, reductions.
+
+Ownership (seed 001 sec 2.5): a particle belongs to the rank owning the mesh cell that holds its centre.
+At every pair-list rebuild (collective) the DEM calls, in this order:
+
+1. `migrate(particles, saved, wsaved)`: each owned particle is located (walk from `particles.cell`,
+   `febed.coupling.locate`); FOUND in a ghost cell -> that cell's owner; OUTSIDE_LOCAL (further than the ghost
+   layer, rare) -> resolved by asking every rank; OUTSIDE_DOMAIN -> stays (e.g. between an outlet and the
+   box where the driver removes it). Leaving particles go with every field, their auxiliary arrays
+   (`Particles.attach`, e.g. the external force) and the contact history of their pairs and walls, keyed by
+   gid pairs; the receiver merges it with its own (a pair across the partition is integrated by both
+   owners identically, so either copy is right).
+2. `refresh_ghosts(particles, reach)`: copies of the owned particles within the halo `reach` (>= largest
+   diameter + skin) of other ranks' owned cells go to those ranks (`febed.parallel.halo.HaloTable`); they
+   become the ghost rows, which the pair list sees and the integrators skip.
+
+Between rebuilds `update_ghosts(particles, vel, omega)` refreshes the ghosts' positions and velocities at every
+force evaluation (each RK2 stage, each Verlet step) with non-blocking point-to-point messages, so the two
+owners of a contact across the partition compute the same pair force.
+"""
+
+from __future__ import annotations
+
+import time
+
+from mpi4py import MPI
+
+import numpy as np
+
+from febed.coupling.locate import FOUND, OUTSIDE_LOCAL, locate
+from febed.dem.particles import GID_LIMIT
+from febed.parallel.halo import HaloTable
+
+_GHOST_FLOATS = ("pos", "vel", "omega", "diameter", "mass", "inertia")
+_GHOST_INTS = ("gid", "n_orig", "material")
+_MASK31 = (1 << 31) - 1
+
+
+def _split_by_gid(keys: np.ndarray, gid_sets: dict[int, np.ndarray], pair: bool) -> dict[int, np.ndarray]:
+    """Rows of `keys` (pair keys gi << 31 | gj, or wall keys gid << 31 | wall) involving each rank's gids."""
+    a = keys >> 31
+    b = keys & _MASK31
+    out = {}
+    for r, g in gid_sets.items():
+        hit = np.isin(a, g)
+        if pair:
+            hit |= np.isin(b, g)
+        out[r] = np.flatnonzero(hit)
+    return out
+
+
+def _merge(keys: np.ndarray, vals: np.ndarray, more: list[tuple[np.ndarray, np.ndarray]]):
+    """Sorted unique keys with their values; on duplicates the first source (this rank's) wins."""
+    if not more:
+        return keys, vals
+    k = np.concatenate([keys] + [m[0] for m in more])
+    v = np.concatenate([vals.reshape(-1, 3)] + [m[1].reshape(-1, 3) for m in more])
+    order = np.argsort(k, kind="stable")
+    k, v = k[order], v[order]
+    first = np.ones(k.size, dtype=bool)
+    first[1:] = k[1:] != k[:-1]
+    return k[first], v[first]
+
+
+class ParticleExchange:
+    """Particle decomposition over the mesh partition of `ma` (see the module docstring).
+
+    Attributes:
+        comm: the mesh communicator; rank, size: its rank and size.
+        timers: wall seconds in "migrate", "ghosts" (refresh), "update" (per-stage ghost updates),
+            "reduce" (collective reductions of the stepping).
+        migrated: particles sent away so far; strays: owned particles last found outside the halo region.
+    """
+
+    def __init__(self, ma, cell_owner: np.ndarray):
+        """Set up for mesh arrays `ma` (`extract_mesh_arrays`) and the owner rank of each local cell."""
+        cell_owner = np.asarray(cell_owner, dtype=np.int32)
+        if cell_owner.shape != (ma.num_cells,):
+            raise ValueError(f"cell_owner: must have one rank per local cell ({ma.num_cells},), got {cell_owner.shape}")
+        self.ma = ma
+        self.comm = ma.comm if ma.comm is not None else MPI.COMM_SELF
+        self.rank = self.comm.rank
+        self.size = self.comm.size
+        self.cell_owner = cell_owner
+        self.table: HaloTable | None = None
+        self.timers = {"migrate": 0.0, "ghosts": 0.0, "update": 0.0, "reduce": 0.0}
+        self.migrated = 0
+        self.strays = 0
+        self._send_start = np.zeros(self.size + 1, dtype=np.int64)
+        self._send_rows = np.zeros(0, dtype=np.int64)
+        self._recv_start = np.zeros(self.size + 1, dtype=np.int64)
+
+    @classmethod
+    def from_mesh(cls, mesh, Q=None, depth: float = 1.0) -> ParticleExchange:
+        """The exchange of a DOLFINx mesh (collective: extracts the coupling's mesh arrays)."""
+        from febed.coupling.mesh_arrays import extract_mesh_arrays
+        from febed.parallel.partition import cell_owners
+
+        return cls(extract_mesh_arrays(mesh, Q, depth=depth), cell_owners(mesh))
+
+    # ------------------------------------------------------------------------------------ reductions
+    def _reduce(self, x, op):
+        t = time.perf_counter()
+        out = self.comm.allreduce(x, op=op)
+        self.timers["reduce"] += time.perf_counter() - t
+        return out
+
+    def any(self, flag: bool) -> bool:
+        """True on every rank if `flag` is True on any rank."""
+        return bool(self._reduce(bool(flag), MPI.LOR))
+
+    def max(self, x: float) -> float:
+        """Maximum of x over the ranks."""
+        return self._reduce(x, MPI.MAX)
+
+    def min(self, x: float) -> float:
+        """Minimum of x over the ranks."""
+        return self._reduce(x, MPI.MIN)
+
+    def sum(self, x):
+        """Sum of x over the ranks."""
+        return self._reduce(x, MPI.SUM)
+
+    def concat(self, a: np.ndarray) -> np.ndarray:
+        """The arrays of every rank concatenated in rank order (allgather)."""
+        return np.concatenate(self.comm.allgather(np.asarray(a)))
+
+    # ------------------------------------------------------------------------------------ ownership
+    def _locate(self, pos: np.ndarray, cell: np.ndarray):
+        c = np.ascontiguousarray(cell, dtype=np.int32)
+        _, _, status, _, _ = locate(self.ma, np.ascontiguousarray(pos, dtype=np.float64), c)
+        return c, status
+
+    def owners(self, particles) -> np.ndarray:
+        """Destination rank of each owned particle (collective); updates `particles.cell` where found."""
+        P = particles
+        n = P.n_owned
+        cell, status = self._locate(P.pos[:n], P.cell[:n])
+        dest = np.full(n, self.rank, dtype=np.int64)
+        found = status == FOUND
+        dest[found] = self.cell_owner[cell[found]]
+        P.cell[:n] = np.where(found, cell, -1)
+        lost = np.flatnonzero(status == OUTSIDE_LOCAL)
+        if self.size > 1 and self._reduce(int(lost.size), MPI.SUM):
+            claim = self.claim(P.pos[lost])
+            dest[lost] = np.where(claim >= 0, claim, self.rank)
+        return dest
+
+    def claim(self, pos: np.ndarray) -> np.ndarray:
+        """Owner rank of each point of every rank's `pos` (k, 3) (collective; -1 outside the mesh): this rank's rows."""
+        allpos = self.concat(np.asarray(pos, dtype=np.float64).reshape(-1, 3))
+        counts = self.comm.allgather(int(np.asarray(pos).reshape(-1, 3).shape[0]))
+        cell, status = self._locate(allpos, np.full(allpos.shape[0], -1, dtype=np.int32))
+        mine = (status == FOUND) & (cell >= 0)
+        mine[mine] = cell[mine] < self.ma.num_owned_cells
+        big = np.iinfo(np.int64).max
+        c = np.where(mine, self.rank, big).astype(np.int64)
+        out = np.empty_like(c)
+        self.comm.Allreduce(c, out, op=MPI.MIN)
+        off = int(np.sum(counts[: self.rank]))
+        out = out[off : off + counts[self.rank]]
+        return np.where(out == big, -1, out)
+
+    def distribute(self, particles) -> None:
+        """Keep only this rank's share of a particle set every rank holds identically (start of a run).
+
+        Particles outside every rank's cells stay with rank 0. Gids stay; `next_gid` is offset per rank so that
+        particles inserted later get globally unique gids.
+        """
+        P = particles
+        n = P.n_owned
+        P.n_ghost = 0
+        owner = self._owners_all(P) if self.size > 1 else np.zeros(n, dtype=np.int64)
+        keep = np.flatnonzero(np.where(owner < 0, 0, owner) == self.rank)
+        P.keep(keep)
+        P.cell[: P.n_owned] = -1
+        self.set_next_gid(P)
+
+    def _owners_all(self, particles) -> np.ndarray:
+        P = particles
+        n = P.n_owned
+        cell, status = self._locate(P.pos[:n], np.full(n, -1, dtype=np.int32))
+        mine = (status == FOUND) & (cell >= 0)
+        mine[mine] = cell[mine] < self.ma.num_owned_cells
+        big = np.iinfo(np.int64).max
+        c = np.where(mine, self.rank, big).astype(np.int64)
+        out = np.empty_like(c)
+        self.comm.Allreduce(c, out, op=MPI.MIN)
+        return np.where(out == big, -1, out)
+
+    def set_next_gid(self, particles) -> None:
+        """Give each rank its own block of future gids above every gid in use (collective)."""
+        P = particles
+        base = self.max(int(P.next_gid))
+        stride = (GID_LIMIT - 1 - base) // self.size
+        P.next_gid = base + self.rank * stride
+
+    # ------------------------------------------------------------------------------------ migration
+    def migrate(self, particles, saved=None, wsaved=None):
+        """Send owned particles to their owners with their history (collective); returns merged (saved, wsaved).
+
+        saved: (keys, vals) of pair history (`PairList.saved_history`), wsaved: (keys, vals) of wall history, or
+        None. Ghost rows are dropped. Arrivals get cell -1 (located afresh by their next walk).
+        """
+        t0 = time.perf_counter()
+        P = particles
+        P.n_ghost = 0
+        if self.size == 1:
+            return saved, wsaved
+        dest = self.owners(P)
+        leave = dest != self.rank
+        out = [None] * self.size
+        idx = np.flatnonzero(leave)
+        gid_sets = {}
+        for r in np.unique(dest[idx]):
+            rows = idx[dest[idx] == r]
+            out[int(r)] = {"rows": P.pack(rows)}
+            gid_sets[int(r)] = P.gid[rows]
+        if gid_sets:
+            for key, hist in (("pairs", saved), ("walls", wsaved)):
+                if hist is None or hist[0].size == 0:
+                    continue
+                for r, sel in _split_by_gid(hist[0], gid_sets, key == "pairs").items():
+                    out[r][key] = (hist[0][sel], hist[1][sel])
+        got = self.comm.alltoall(out)
+        self.migrated += int(idx.size)
+        if idx.size:
+            P.keep(np.flatnonzero(~leave))
+        more_p, more_w = [], []
+        for msg in got:
+            if msg is None:
+                continue
+            rows = msg["rows"]
+            rows["cell"] = np.full(rows["pos"].shape[0], -1, dtype=np.int64)
+            P.append(rows)
+            if "pairs" in msg:
+                more_p.append(msg["pairs"])
+            if "walls" in msg:
+                more_w.append(msg["walls"])
+        if more_p:
+            saved = _merge(*saved, more_p) if saved is not None else _merge(*more_p[0], more_p[1:])
+        if more_w:
+            wsaved = _merge(*wsaved, more_w) if wsaved is not None else _merge(*more_w[0], more_w[1:])
+        self.timers["migrate"] += time.perf_counter() - t0
+        return saved, wsaved
+
+    # ------------------------------------------------------------------------------------ ghosts
+    def refresh_ghosts(self, particles, reach: float) -> None:
+        """Replace the ghost rows by copies of other ranks' particles within `reach` (m) of this rank's cells."""
+        t0 = time.perf_counter()
+        P = particles
+        P.n_ghost = 0
+        if self.size == 1:
+            return
+        if self.table is None or self.table.width < reach:
+            self.table = HaloTable(self.comm, self.ma.bbox, self.ma.num_owned_cells, 1.2 * reach)
+        n = P.n_owned
+        start, rows, stray = self.table.targets(P.pos[:n], n)
+        self.strays = stray
+        self._send_start, self._send_rows = start, rows
+        counts = np.diff(start).astype(np.int64)
+        recv = np.zeros(self.size, dtype=np.int64)
+        self.comm.Alltoall(counts, recv)
+        self._recv_start = np.concatenate([[0], np.cumsum(recv)])
+        nf = 12
+        fbuf = np.empty((rows.size, nf))
+        ibuf = np.empty((rows.size, len(_GHOST_INTS)), dtype=np.int64)
+        c = 0
+        for name in _GHOST_FLOATS:
+            a = getattr(P, name)[rows]
+            w = 1 if a.ndim == 1 else 3
+            fbuf[:, c : c + w] = a.reshape(-1, w)
+            c += w
+        for k, name in enumerate(_GHOST_INTS):
+            ibuf[:, k] = getattr(P, name)[rows]
+        m = int(self._recv_start[-1])
+        rf = np.empty((m, nf))
+        ri = np.empty((m, len(_GHOST_INTS)), dtype=np.int64)
+        reqs = []
+        for r in range(self.size):
+            a, b = self._recv_start[r], self._recv_start[r + 1]
+            if b > a:
+                reqs.append(self.comm.Irecv(rf[a:b], source=r, tag=11))
+                reqs.append(self.comm.Irecv(ri[a:b], source=r, tag=12))
+        for r in range(self.size):
+            a, b = start[r], start[r + 1]
+            if b > a:
+                reqs.append(self.comm.Isend(fbuf[a:b], dest=r, tag=11))
+                reqs.append(self.comm.Isend(ibuf[a:b], dest=r, tag=12))
+        MPI.Request.Waitall(reqs)
+        fields = {"pos": rf[:, 0:3], "vel": rf[:, 3:6], "omega": rf[:, 6:9], "diameter": rf[:, 9], "mass": rf[:, 10],
+                  "inertia": rf[:, 11]}  # fmt: skip
+        for k, name in enumerate(_GHOST_INTS):
+            fields[name] = ri[:, k]
+        fields["cell"] = np.full(m, -1, dtype=np.int64)
+        P.set_ghosts(**fields)
+        self._fbuf = np.empty((rows.size, 9))
+        self._rbuf = np.empty((m, 9))
+        self.timers["ghosts"] += time.perf_counter() - t0
+
+    def update_ghosts(self, particles, vel: np.ndarray, omega: np.ndarray) -> None:
+        """Copy the owners' pos, `vel`, `omega` ((n, 3), indexed like the particle rows) into the ghost rows.
+
+        vel/omega are the velocities the force evaluation uses (the particle's, or Verlet's predicted ones).
+        """
+        if self.size == 1:
+            return
+        t0 = time.perf_counter()
+        P = particles
+        rows = self._send_rows
+        sb, rb = self._fbuf, self._rbuf
+        sb[:, 0:3] = P.pos[rows]
+        sb[:, 3:6] = vel[rows]
+        sb[:, 6:9] = omega[rows]
+        reqs = []
+        for r in range(self.size):
+            a, b = self._recv_start[r], self._recv_start[r + 1]
+            if b > a:
+                reqs.append(self.comm.Irecv(rb[a:b], source=r, tag=13))
+        for r in range(self.size):
+            a, b = self._send_start[r], self._send_start[r + 1]
+            if b > a:
+                reqs.append(self.comm.Isend(sb[a:b], dest=r, tag=13))
+        MPI.Request.Waitall(reqs)
+        g = slice(P.n_owned, P.n_owned + rb.shape[0])
+        P.pos[g] = rb[:, 0:3]
+        vel[g] = rb[:, 3:6]
+        omega[g] = rb[:, 6:9]
+        self.timers["update"] += time.perf_counter() - t0
+
+    def counts(self, particles) -> tuple[int, float, int]:
+        """(total, max/mean imbalance, ghosts total) of the owned particles over ranks (collective)."""
+        c = np.array(self.comm.allgather((particles.n_owned, particles.n_ghost)))
+        total = int(c[:, 0].sum())
+        mean = total / self.size
+        return total, (float(c[:, 0].max()) / mean if mean > 0 else 1.0), int(c[:, 1].sum())
