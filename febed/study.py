@@ -174,6 +174,12 @@ def load_study(path: str | Path) -> Study:
     for mname, table in raw.get("cases", {}).items():
         if not isinstance(table, dict):
             raise ValueError(f"[cases.{mname}]: expected a table of 'section.key' = value")
+        nested = [k for k, v in table.items() if isinstance(v, dict)]
+        if nested:
+            raise ValueError(
+                f"[cases.{mname}]: {nested} are tables; write keys as quoted dotted names "
+                f'("contact.friction_pp" = 0.1) and quote member names holding dots ([cases."mu0.1"])'
+            )
         ovs = [f"{k}={_toml_text(v)}" for k, v in table.items()]
         members.append(Member(mname, dict(table), ovs, directory))
     if not members:
