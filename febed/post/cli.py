@@ -45,8 +45,12 @@ def add_post_parser(subparsers) -> argparse.ArgumentParser:
 
 def cmd_post(args) -> int:
     """Run `febed post` with parsed arguments; prints what it wrote and the main numbers."""
+    from mpi4py import MPI
+
     from febed.post.report import post_run
 
+    if MPI.COMM_WORLD.rank != 0:  # started under mpirun: one process does the work
+        return 0
     run_dir = Path(args.run_dir)
     if not run_dir.is_dir():
         raise ValueError(f"RUN_DIR {run_dir} is not a folder")

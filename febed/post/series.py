@@ -7,6 +7,7 @@ with the buoyant bed weight per cross-section, W/A = (ρ_p − ρ_g) g Σ V_p / 
 
 from __future__ import annotations
 
+import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,17 +44,33 @@ class SeriesSummary:
 
 
 def read_series(run_dir: str | Path) -> dict[str, np.ndarray]:
-    """The probe columns of a run as arrays ({} if the run writes no probes, e.g. mode = 'dem')."""
-    from febed.io.probes import read_probes
+    """The probe columns of a run as arrays ({} without probe rows yet, or without probes.csv: mode = 'dem').
 
+    Safe on a running run: a row being written (no newline yet, missing or unparsable cells) is dropped.
+    """
     path = Path(run_dir) / "probes.csv"
     if not path.is_file():
         return {}
-    try:
-        data = read_probes(path)
-    except (IndexError, ValueError):  # a header only, or a row being written when read
+    with open(path, newline="") as f:
+        text = f.read()
+    lines = text.split("\n")
+    if not text.endswith("\n"):
+        lines = lines[:-1]  # the last row is still being written
+    rows = [r for r in csv.reader(lines) if r]
+    if not rows:
         return {}
-    return {k: np.asarray(v, dtype=float) for k, v in data.items()}
+    header, body = rows[0], []
+    for r in rows[1:]:
+        if len(r) != len(header):
+            continue
+        try:
+            body.append([float(c) if c != "" else math.nan for c in r])
+        except ValueError:
+            continue
+    if not body:
+        return {}
+    data = np.asarray(body, dtype=float)
+    return {c: data[:, k].copy() for k, c in enumerate(header)}
 
 
 def weight_per_area(info: RunInfo, solid_volume: float) -> float:

@@ -257,3 +257,14 @@ def test_bad_arguments(tmp_path):
         average_fields(run, agitation="favre")
     with pytest.raises(ValueError, match="run_dir"):
         post_run(tmp_path)
+
+
+def test_probe_series_of_a_running_run(tmp_path):
+    """A row being written (no newline, cut in a cell) is dropped; complete rows are kept."""
+    from febed.post import read_series
+
+    (tmp_path / "probes.csv").write_text("time,dp_bed,bed_height\n0.0,1.0,0.1\n0.001,2.0,,\n0.002,3.0,0.3\n0.003,4.")
+    s = read_series(tmp_path)
+    assert s["time"].tolist() == [0.0, 0.002] and s["dp_bed"].tolist() == [1.0, 3.0]
+    (tmp_path / "probes.csv").write_text("time,dp_bed\n")
+    assert read_series(tmp_path) == {}
