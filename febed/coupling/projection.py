@@ -76,7 +76,7 @@ def _as2d(a: np.ndarray, n: int, name: str) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     if a.shape[0] != n or a.ndim not in (1, 2):
         raise ValueError(f"{name}: must have shape ({n},) or ({n}, k), got {a.shape}")
-    return a.reshape(n, -1)
+    return a.reshape(n, a.shape[1] if a.ndim == 2 else 1)  # (not -1: no particles is fine)
 
 
 def project(ma: MeshArrays, cell: np.ndarray, w: np.ndarray, values: np.ndarray) -> np.ndarray:
