@@ -1,13 +1,16 @@
 """The `febed` command line.
 
     febed run CASE.toml [--set section.key=value ...] [--overwrite]   run a case (also under mpirun -n N)
+    febed run CASE.toml --restart [CHECKPOINT]                        continue a run from its newest checkpoint
     febed check CASE.toml [--set ...]                                 validate a case and its mesh, run nothing
     febed params [SECTION]                                            every parameter: default, unit, help
     febed mesh NAME [--level L] [--cell C] [--size H] [--extent ...] -o FILE.msh   build a built-in mesh
 
 Errors in the user's input (case, mesh, output folder, values a solver refuses) are printed as one clear
-message and exit with status 2; a run that fails (a particle escaping, ...) exits with status 3; a
-traceback means a bug in febed (`febed run -v` shows the traceback of a refused value too).
+message and exit with status 2; a run that fails (a particle escaping, ...) exits with status 3 after
+writing its last good state as a checkpoint; a run stopped by SIGINT/SIGTERM writes a checkpoint and exits
+with 128 + the signal number (130, 143); a traceback means a bug in febed (`febed run -v` shows the
+traceback of a refused value too).
 """
 
 from __future__ import annotations
@@ -55,6 +58,13 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a case")
     with_case(r)
     r.add_argument("--overwrite", action="store_true", help="replace an existing output folder written by febed")
+    r.add_argument(
+        "--restart",
+        nargs="?",
+        const="latest",
+        metavar="CHECKPOINT",
+        help="continue the run in the case's output folder from its newest valid checkpoint (or this file)",
+    )
     r.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     c = sub.add_parser("check", help="validate a case (and its mesh tags) without running it")
     with_case(c)
@@ -127,17 +137,57 @@ def cmd_run(args) -> int:
                 f"({module} is missing); see the features table in README.md"
             ) from None
         raise
-    outdir = prepare_output(case, overwrite=args.overwrite)
+    if args.restart is None:
+        outdir = prepare_output(case, overwrite=args.overwrite)
+        log = get_logger(outdir, verbose=args.verbose)
+        log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
+        log.info(f"output folder: {outdir}")
+        runner.run(case, outdir, log)
+        return 0
+    if args.overwrite:
+        raise UserError("--restart continues the run in the output folder: it cannot be combined with --overwrite")
+    if case.run.mode != "cfd-dem":
+        raise UserError(f"--restart is available for [run] mode = 'cfd-dem' only, not {case.run.mode!r}")
+    outdir, checkpoint = _restart_target(case, args.restart)
     log = get_logger(outdir, verbose=args.verbose)
-    log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
-    log.info(f"output folder: {outdir}")
-    runner.run(case, outdir, log)
+    log.info(f"febed: case {case.name} ({case.path}), restart, {MPI.COMM_WORLD.size} rank(s)")
+    runner.run(case, outdir, log, restart=checkpoint)
     return 0
+
+
+def _restart_target(case, restart: str) -> tuple[Path, Path]:
+    """The run folder and checkpoint to continue; refuses case changes a restart cannot take (collective)."""
+    from febed.io.checkpoint import FOLDER
+    from febed.io.rundir import RESOLVED_CASE, _header, atomic_write_text
+    from febed.restart import case_changes, read_resolved
+
+    outdir = case.output_dir()
+    if not (outdir / RESOLVED_CASE).is_file():
+        raise UserError(f"--restart: {outdir} holds no febed run ({RESOLVED_CASE} missing); run without --restart")
+    checkpoint = outdir / FOLDER if restart == "latest" else Path(restart)
+    if not checkpoint.exists():
+        raise UserError(f"--restart: checkpoint {checkpoint} does not exist")
+    accepted, refused = case_changes(read_resolved(outdir), case.to_toml())
+    if refused:
+        raise UserError(
+            "--restart: the case changed in parameters a run cannot change midway:\n  "
+            + "\n  ".join(refused)
+            + "\nstart a new run (another output directory) to change them"
+        )
+    if accepted and MPI.COMM_WORLD.rank == 0:
+        _say("febed: restart with changed parameters:\n  " + "\n  ".join(accepted))
+        text = read_resolved(outdir)
+        atomic_write_text(outdir / f"case.before-restart-{len(list(outdir.glob('case.before-restart-*')))}.toml", text)
+        atomic_write_text(outdir / RESOLVED_CASE, _header(case) + case.to_toml())
+    MPI.COMM_WORLD.barrier()
+    return outdir, checkpoint
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `febed` console script; returns the exit status."""
+    from febed.io.checkpoint import CheckpointError
     from febed.io.rundir import OutputError
+    from febed.run import Interrupted
     from febed.solver import RunFailure
 
     args = _parser().parse_args(argv)
@@ -151,6 +201,11 @@ def main(argv: list[str] | None = None) -> int:
     except RunFailure as e:
         _say(f"febed: the run failed: {e}", err=True)
         return 3
+    except Interrupted as e:
+        _say(f"febed: {e}", err=True)
+        return 128 + e.signum
+    except CheckpointError as e:
+        _say(f"febed: error: {e}", err=True)
     except ValueError as e:  # a value the solvers refuse, with their message (-v shows the traceback)
         if getattr(args, "verbose", False):
             raise

@@ -9,7 +9,15 @@ steps it writes
   and the wall-time split DEM / coupling / gas / output (cumulative seconds);
 * fields (`fields.xdmf`: u, p, ε, α_p) every `field_interval` and particles (`particles/*.vtp` + `.pvd`)
   every `particle_interval`, for ParaView;
-* a progress line every `progress_interval` wall seconds (console and `febed.log`).
+* a progress line every `progress_interval` wall seconds (live on a terminal, always in `febed.log`);
+* checkpoints (`checkpoints/checkpoint_<step>.npz`, see `febed.io.checkpoint` and `febed.restart`) every
+  `checkpoint_interval` simulated or `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM and at
+  the end; `status.json` says whether the run is running, finished, failed or interrupted.
+
+After every gas step the solver's health checks run (`CoupledSolver.check`). A failure stops the run with
+its message, writes the last state that passed the checks (kept in memory at each probe time) as a
+checkpoint, and exits non-zero. SIGINT/SIGTERM (Ctrl-C, a batch system's time limit) finish the current
+gas step, write a checkpoint and stop (`Interrupted`); ranks agree on the step at which they stop.
 
 Definitions:
 
@@ -22,7 +30,9 @@ Definitions:
 
 from __future__ import annotations
 
+import json
 import math
+import signal
 import time
 from pathlib import Path
 
@@ -30,12 +40,26 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed import restart as rs
 from febed.coupling.exchange import solid_volume
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.weights import compute_weights
+from febed.io.checkpoint import FOLDER, CheckpointError, write_checkpoint
 from febed.io.probes import ProbeFile
+from febed.io.progress import Progress, clock
+from febed.io.rundir import atomic_write_text
 from febed.solver import RunFailure, build_solver
+
+STATUS = "status.json"
+
+
+class Interrupted(Exception):
+    """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
+
+    def __init__(self, signum: int, message: str):
+        super().__init__(message)
+        self.signum = signum
 
 
 class SectionAverage:
@@ -81,10 +105,13 @@ def bed_height(heights: np.ndarray, volumes: np.ndarray, fraction: float, comm=M
 
 
 class CoupledRun:
-    """A coupled run with its output: `advance_to(t)` steps the solver, writing probes and output."""
+    """A coupled run with its output: `advance_to(t)` steps the solver, writing probes, output, checkpoints."""
 
-    def __init__(self, case, outdir: Path, log, comm=MPI.COMM_WORLD, md=None):
-        """Build the mesh (unless given), the coupled solver, the probes and the writers."""
+    def __init__(self, case, outdir: Path, log, comm=MPI.COMM_WORLD, md=None, restart=None):
+        """Build the mesh (unless given), the coupled solver, the probes and the writers.
+
+        `restart`: (path, arrays, meta) of a checkpoint (`febed.io.checkpoint.load_checkpoint`) to continue.
+        """
         from febed.meshing import load_case_mesh
 
         self.case = case
@@ -111,11 +138,26 @@ class CoupledRun:
             "cfl", "poisson_iterations", "gas_inflow", "gas_mass_imbalance", "clipped_nodes",
             "wall_dem", "wall_coupling", "wall_gas", "wall_output",
         ]  # fmt: skip
-        self.probes = ProbeFile(self.outdir / "probes.csv", self.columns, comm)
-        self._writers()
-        self.next = {"probe": 0.0, "field": 0.0, "particle": 0.0}  # next output time of each kind
+        o = case.output
+        self.next = {"probe": 0.0, "field": 0.0, "particle": 0.0, "checkpoint": o.checkpoint_interval}
         self.last = {"probe": None, "field": None, "particle": None}  # time of the last one written
-        self._wall0 = self._last_progress = time.perf_counter()
+        self.segment = 0  # restarts so far: fields of segment k go to fields.restart<k>.xdmf
+        self._particle_files = []
+        self._probe_rows = None
+        self.restarted_from = None
+        if restart is not None:
+            path, arrays, meta = restart
+            rs.restore(self, arrays, meta)
+            self.restarted_from = path
+        self.probes = ProbeFile(
+            self.outdir / "probes.csv", self.columns, comm, restart_time=s.t if restart else None,
+            keep_rows=self._probe_rows,
+        )  # fmt: skip
+        self._writers()
+        self.display = Progress(log, comm.rank)
+        self.good = None  # (arrays, meta) of the last state that passed the health checks
+        self._signal = 0
+        self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
         self._t0 = s.t
 
     def _writers(self) -> None:
@@ -128,8 +170,29 @@ class CoupledRun:
         self.alpha = dolfinx.fem.Function(s.gas.Q)
         funcs = dict(s.gas.functions())
         funcs["alpha_p"] = self.alpha
-        self.fields = FieldWriter(self.outdir / "fields.xdmf", self.md.mesh, funcs, self.comm)
-        self.particles = ParticleWriter(self.outdir / "particles", comm=self.comm)
+        name = "fields.xdmf" if self.segment == 0 else f"fields.restart{self.segment}.xdmf"
+        self.fields = FieldWriter(self.outdir / name, self.md.mesh, funcs, self.comm)
+        self.particles = ParticleWriter(self.outdir / "particles", comm=self.comm, entries=self._particle_files)
+
+    # ------------------------------------------------------------------------------------- schedule
+    def schedule(self) -> dict:
+        """The output schedule, for checkpoints: next/last output times, files and rows written so far."""
+        return {
+            "next": dict(self.next),
+            "last": dict(self.last),
+            "particle_files": [list(e) for e in self.particles.entries],
+            "probe_rows": self.comm.bcast(self.probes.rows, root=0),
+            "segment": self.segment,
+        }
+
+    def set_schedule(self, sched: dict) -> None:
+        """Continue the output schedule of a checkpoint (before the writers are opened)."""
+        self.next.update(sched["next"])
+        self.next["checkpoint"] = self.solver.t + self.case.output.checkpoint_interval
+        self.last.update(sched["last"])
+        self._particle_files = sched["particle_files"]
+        self._probe_rows = int(sched["probe_rows"])
+        self.segment = int(sched["segment"]) + 1
 
     # ------------------------------------------------------------------------------------------ probes
     def probe_values(self) -> dict[str, float]:
@@ -161,44 +224,84 @@ class CoupledRun:
         vals.update({f"p_{k}": v for k, v in sec.items()})
         return vals
 
-    def check_health(self) -> None:
-        """Stop with a RunFailure naming what is not finite, where and when."""
-        s = self.solver
-        P = s.dem.particles
-        n = P.n_owned
-        bad = ~np.isfinite(P.pos[:n]).all(axis=1) | ~np.isfinite(P.vel[:n]).all(axis=1)
-        if bad.any():
-            k = int(np.flatnonzero(bad)[0])
-            raise RunFailure(f"particle {int(P.gid[k])} has a non-finite position/velocity at t = {s.t:.6g} s")
-        for name, a in (("u", s.gas.u), ("p", s.gas.p)):
-            if not np.isfinite(a).all():
-                k = int(np.flatnonzero(~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1))[0])
-                raise RunFailure(f"gas {name} is not finite at node {s.ma.x_dofs[k].tolist()} at t = {s.t:.6g} s")
-
     # ------------------------------------------------------------------------------------------ output
     def output(self, force: bool = False) -> None:
-        """Write whatever is due (probes, fields, particles); `force` writes all of them now."""
+        """Write whatever is due (probes, fields, particles); `force` writes all of them now.
+
+        At each probe time the state (which has just passed the health checks) is kept in memory: a later
+        failure writes it as the last good checkpoint.
+        """
         s = self.solver
         o = self.case.output
         t0 = time.perf_counter()
         tol = 1e-9 * max(s.last_gas.dt if s.last_gas else 1.0, 1e-12)
-        due = {k: (force and self.last[k] != s.t) or s.t >= self.next[k] - tol for k in self.next}
+        kinds = ("probe", "field", "particle")
+        due = {k: (force and self.last[k] != s.t) or s.t >= self.next[k] - tol for k in kinds}
         if due["probe"]:
-            self.check_health()
             self.probes.write(s.t, self.probe_values())
         if due["field"]:
             self.alpha.x.array[:] = s.alpha
             self.fields.write(s.t)
         if due["particle"]:
             self.particles.write(s.t, s.dem.particles)
-        for kind in self.next:
+            self._log_balance()
+        for kind in kinds:
             if due[kind]:
                 self.last[kind] = s.t
                 self.next[kind] = s.t + getattr(o, f"{kind}_interval")
+        if due["probe"] and not force:
+            self.good = rs.capture(self)
         s.timers.output += time.perf_counter() - t0
 
+    def _log_balance(self) -> None:
+        if self.comm.size == 1:
+            return
+        counts = self.comm.allgather(self.solver.dem.particles.n_owned)
+        mean = sum(counts) / len(counts)
+        if mean > 0:
+            self.log.info(f"particles per rank {counts}: load imbalance max/mean = {max(counts) / mean:.3f}")
+
+    # ---------------------------------------------------------------------------------- checkpoints
+    def checkpoint(self, state=None) -> Path:
+        """Write a checkpoint of the current state (or of `state` = (arrays, meta) from `restart.capture`)."""
+        s = self.solver
+        t0 = time.perf_counter()
+        arrays, meta = state if state is not None else rs.capture(self)
+        meta = {**meta, "case": self.case.to_toml()}
+        try:
+            path = write_checkpoint(
+                self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta, self.case.output.keep_checkpoints,
+                self.comm,
+            )  # fmt: skip
+        except CheckpointError as e:
+            raise RunFailure(str(e)) from None
+        self._last_checkpoint = time.perf_counter()
+        self.next["checkpoint"] = s.t + self.case.output.checkpoint_interval
+        self.log.info(f"checkpoint at t = {meta['time']:.6g} s (gas step {meta['step']}): {path}")
+        s.timers.output += time.perf_counter() - t0
+        return path
+
+    def status(self, state: str, message: str = "") -> None:
+        """Write `status.json`: state (running / finished / failed / interrupted), time, end time, message."""
+        if self.comm.rank != 0:
+            return
+        s = self.solver
+        info = {"state": state, "time": s.t, "step": s.steps, "end_time": self.case.run.end_time}
+        if message:
+            info["message"] = message
+        atomic_write_text(self.outdir / STATUS, json.dumps(info, indent=1) + "\n")
+
+    def _requests(self) -> tuple[int, bool]:
+        """(signal received, wall-clock checkpoint due), agreed by all ranks (collective under MPI)."""
+        wall_due = time.perf_counter() - self._last_checkpoint >= self.case.output.checkpoint_wall_interval
+        if self.comm.size == 1:
+            return self._signal, wall_due
+        sig, due = self.comm.allreduce((self._signal, int(wall_due) if self.comm.rank == 0 else 0), op=MPI.MAX)
+        return sig, bool(due)
+
+    # ---------------------------------------------------------------------------------------- loop
     def progress(self, end: float, force: bool = False) -> None:
-        """Log a progress line if `progress_interval` wall seconds have passed (or `force`)."""
+        """Show a progress line if `progress_interval` wall seconds have passed (or `force`)."""
         now = time.perf_counter()
         if not force and now - self._last_progress < self.case.output.progress_interval:
             return
@@ -209,20 +312,55 @@ class CoupledRun:
         rate = wall / done if done > 0 else math.nan
         eta = rate * (end - s.t) if done > 0 else math.nan
         n = self.comm.allreduce(s.dem.particles.n_owned)
-        self.log.info(
+        self.display.show(
             f"t = {s.t:.5f} / {end:g} s  step {s.steps}  {n} particles  {s.n_sub} sub-steps/step  "
-            f"{rate / 60:.2f} min wall per simulated s  ETA {_clock(eta)}"
+            f"{rate / 60:.2f} min wall per simulated s  ETA {clock(eta)}"
         )
 
     def advance_to(self, end: float) -> None:
-        """Step until `end` (s), writing output and progress on the way."""
+        """Step until `end` (s), writing output, checkpoints and progress on the way.
+
+        Raises RunFailure (after writing the last good state) or Interrupted (after a checkpoint).
+        """
         s = self.solver
         self.output(force=s.steps == 0)
+        if self.good is None:
+            self.good = rs.capture(self)
+        self.status("running")
         while s.t < end * (1 - 1e-12):
-            s.step()
+            try:
+                s.step()
+                s.check()
+            except RunFailure as e:
+                self.fail(e)
+                raise
             self.output()
+            sig, wall_due = self._requests()
+            if sig or wall_due or s.t >= self.next["checkpoint"] - 1e-12 * end:
+                self.checkpoint()
+            if sig:
+                name = signal.Signals(sig).name
+                self.display.end()
+                self.status("interrupted", f"stopped by {name}")
+                raise Interrupted(
+                    sig, f"stopped by {name} at t = {s.t:.6g} s after a checkpoint; continue with --restart"
+                )
             self.progress(end)
         self.progress(end, force=True)
+        self.display.end()
+
+    def fail(self, error: RunFailure) -> None:
+        """Record a failure: write the last good state as a checkpoint and the status (collective)."""
+        self.display.end()
+        where = ""
+        if self.good is not None:
+            try:
+                path = self.checkpoint(self.good)
+                where = f"; last good state (t = {self.good[1]['time']:.6g} s) in {path}"
+            except RunFailure as e:
+                where = f"; could not write the last good state: {e}"
+        self.status("failed", f"{error}{where}")
+        self.log.error(f"run failed: {error}{where}")
 
     def close(self) -> None:
         """Write the last output and close the files."""
@@ -230,25 +368,49 @@ class CoupledRun:
         self.probes.close()
         self.fields.close()
 
+    # ---------------------------------------------------------------------------------------- signals
+    def catch_signals(self):
+        """Handle SIGINT/SIGTERM by stopping after the current gas step; returns a function restoring them."""
+        import threading
 
-def _clock(seconds: float) -> str:
-    if not math.isfinite(seconds):
-        return "?"
-    seconds = int(seconds)
-    return f"{seconds // 3600}h{seconds // 60 % 60:02d}m{seconds % 60:02d}s"
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+
+        def handler(signum, frame):
+            if self._signal:  # a second Ctrl-C: stop now
+                raise KeyboardInterrupt
+            self._signal = signum
+            self.log.warning(f"{signal.Signals(signum).name} received: stopping after this gas step")
+
+        old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+        return lambda: [signal.signal(k, v) for k, v in old.items()]
 
 
-def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD):
-    """Run a coupled case to `run.end_time` (called by `febed run`); returns the CoupledRun."""
-    run = CoupledRun(case, Path(outdir), log, comm)
+def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
+    """Run a coupled case to `run.end_time` (called by `febed run`); returns the CoupledRun.
+
+    `restart`: a checkpoint file or run folder to continue from (its newest valid checkpoint).
+    """
+    from febed.io.checkpoint import load_checkpoint
+
+    ckpt = None
+    if restart is not None:
+        ckpt = load_checkpoint(Path(restart), comm)
+        rs.check_restartable(ckpt[2], case)
+    run = CoupledRun(case, Path(outdir), log, comm, restart=ckpt)
     s = run.solver
+    start = f"restarted from {run.restarted_from} at t = {s.t:.6g} s" if ckpt else "cfd-dem"
     log.info(
-        f"cfd-dem: {comm.allreduce(s.dem.particles.n_owned)} particles, {s.ma.num_dofs} nodes, "
+        f"{start}: {comm.allreduce(s.dem.particles.n_owned)} particles, {s.ma.num_dofs} nodes, "
         f"drag {case.coupling.drag}, DEM step {s.dem.dt:.3e} s, to t = {case.run.end_time:g} s"
     )
+    restore_signals = run.catch_signals()
     try:
         run.advance_to(case.run.end_time)
+        run.checkpoint()
+        run.status("finished")
     finally:
+        restore_signals()
         run.close()
     t = s.timers
     total = t.dem + t.coupling + t.gas + t.output

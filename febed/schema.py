@@ -128,6 +128,23 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "end_time": Param(1.0, "s", "simulated time at which the run stops", float, lo=0.0, lo_open=True),
         "gravity": Param(9.81, "m/s^2", "gravity magnitude, along -z in 3D and -y in 2D", float, lo=0.0),
         "seed": Param(12345, "-", "random seed (insertion, coarse-grain placement)", int, lo=0),
+        "max_overlap": Param(
+            0.1,
+            "",
+            "the run fails if a particle overlap exceeds this fraction of the smallest diameter",
+            float,
+            lo=0.0,
+            lo_open=True,
+            hi=1.0,
+        ),
+        "max_clipped_fraction": Param(
+            0.05,
+            "",
+            "the run fails if more than this share of the nodes has its void fraction clipped to the floor",
+            float,
+            lo=0.0,
+            hi=1.0,
+        ),
     },
     "mesh": {
         "file": Param("", "-", "gmsh .msh file with named physical groups (relative to the case file)", str),
@@ -282,6 +299,9 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "particle_interval": Param(0.05, "s", "simulated time between particle outputs", float, lo=0.0, lo_open=True),
         "probe_interval": Param(1e-3, "s", "simulated time between probe rows", float, lo=0.0, lo_open=True),
         "checkpoint_interval": Param(INF, "s", "simulated time between checkpoints", float, lo=0.0, lo_open=True),
+        "checkpoint_wall_interval": Param(
+            INF, "s", "wall-clock time between checkpoints (either interval triggers one)", float, lo=0.0, lo_open=True
+        ),
         "probe_heights": Param(
             [], "m", "heights (along gravity) where the cross-section averaged pressure is probed", list
         ),

@@ -39,10 +39,29 @@ import numpy as np
 from febed.coupling.exchange import Coupler
 from febed.coupling.locate import OUTSIDE_DOMAIN
 from febed.coupling.mesh_arrays import extract_mesh_arrays
+from febed.gas.pressure import PressureSolveError
 
 
 class RunFailure(RuntimeError):
     """The simulation went wrong (a particle escaped, NaN, ...); the message says what, where and when."""
+
+
+@dataclass
+class Limits:
+    """When a run is declared failed (`[run]` keys of the same names; see `CoupledSolver.check`).
+
+    Attributes:
+        max_overlap: largest particle overlap allowed, as a fraction of the smallest diameter.
+        max_clipped_fraction: largest share of the nodes whose void fraction may sit at the floor.
+    """
+
+    max_overlap: float = 0.1
+    max_clipped_fraction: float = 0.05
+
+    @classmethod
+    def from_case(cls, case) -> Limits:
+        """The limits of a case's `[run]` section."""
+        return cls(case.run.max_overlap, case.run.max_clipped_fraction)
 
 
 @dataclass
@@ -98,6 +117,10 @@ class CoupledSolver:
         self.n_sub = 0
         self.timers = Timers()
         self.last_gas = None
+        self.limits = Limits.from_case(case)
+        self.rng = np.random.default_rng(case.run.seed)  # checkpointed with the run (coarse-grain events)
+        self._failure = None  # first problem met inside a step, raised collectively by `check`
+        self._n_nodes = md.comm.allreduce(self.ma.num_owned_dofs)
         eps0 = self.project()[0]
         gas.set_void_fraction(eps0)
 
@@ -124,7 +147,12 @@ class CoupledSolver:
         t1 = time.perf_counter()
         eps, K, Kv, force = self.project()
         t2 = time.perf_counter()
-        self.last_gas = self.gas.step(dt, eps=eps, K=K, Kv=Kv, force=force)
+        try:
+            self.last_gas = self.gas.step(dt, eps=eps, K=K, Kv=Kv, force=force)
+        except PressureSolveError as e:  # raised on every rank (the Krylov solve is collective)
+            self._failure = self._failure or self._local_problem()  # name the cause if the particles show it
+            self._failure = self._failure or f"gas step from t = {self.t:.6g} s (dt = {dt:.3g} s): {e}"
+            self.check()
         t3 = time.perf_counter()
         self.timers.coupling += t2 - t1
         self.timers.gas += t3 - t2
@@ -140,7 +168,8 @@ class CoupledSolver:
         gid = P.gid[:n].copy()
         v0 = P.vel[:n].copy()  # K (u − v) = F_D + K (v0 − v): the drag follows the particle velocity
         tau = float(np.min(P.mass[:n] / np.maximum(K, 1e-300))) if n else math.inf
-        chunks = min(n_sub, max(1, math.ceil(dt / (0.1 * tau))))
+        ratio = dt / (0.1 * tau)
+        chunks = max(1, math.ceil(ratio)) if ratio < n_sub else n_sub  # NaN (a failing run): every sub-step
         h = dt / n_sub
         done = 0
         for k in range(chunks):
@@ -170,20 +199,94 @@ class CoupledSolver:
             facet = c.exit_facet[missing]
             by_outlet = (c.status[missing] == OUTSIDE_DOMAIN) & (facet >= 0)
             by_outlet[by_outlet] = self.outlet_facets[facet[by_outlet]]
-            if not by_outlet.all():
+            nonfinite = missing[~np.isfinite(P.pos[missing]).all(axis=1)]
+            if nonfinite.size and self._failure is None:
+                k = int(nonfinite[0])
+                self._failure = (
+                    f"particle {int(P.gid[k])} has a non-finite position/velocity at t = {self.t:.6g} s "
+                    f"({nonfinite.size} such particle(s))"
+                )
+            if not by_outlet.all() and self._failure is None:  # raised by `check` on every rank
                 k = int(missing[~by_outlet][0])
-                raise RunFailure(
+                self._failure = (
                     f"particle {int(P.gid[k])} at {P.pos[k].tolist()} m left the mesh other than through an "
                     f"outlet at t = {self.t:.6g} s ({int((~by_outlet).sum())} such particle(s))"
                 )
             keep = np.ones(n, dtype=bool)
             keep[missing] = False
-            self.left_outlet += int(missing.size)
+            self.left_outlet += int(by_outlet.sum())
             self.dem.remove_particles(~keep)
             n = P.n_owned
             c.reset_cells(c.cell[keep])
             c.locate(P.pos[:n])  # compacts the coupler's arrays; every cell is known, so no search
         P.cell[:n] = c.cell
+
+    def reset_coupling(self) -> None:
+        """Locate the particles afresh and recompute α_p (after the particles were replaced, e.g. a restart)."""
+        self._failure = None
+        self._located_now = False
+        self.project()
+
+    # ------------------------------------------------------------------------------------ health
+    def check(self) -> None:
+        """Raise RunFailure on every rank if any rank finds a problem (collective; call after each step).
+
+        Checks: a particle that left the mesh other than by an outlet; non-finite particle or gas values;
+        an overlap above `max_overlap` of the smallest diameter during the last step; more than
+        `max_clipped_fraction` of the nodes with ε at its floor. The message says what, where and when.
+        """
+        msg = self._failure or self._local_problem()
+        self.dem.max_overlap = 0.0
+        if self.md.comm.size > 1:
+            msgs = [m for m in self.md.comm.allgather(msg) if m]
+            msg = msgs[0] if msgs else None
+        if msg:
+            raise RunFailure(msg)
+
+    def _local_problem(self) -> str | None:
+        P = self.dem.particles
+        n = P.n_owned
+        when = f"at t = {self.t:.6g} s (gas step {self.steps})"
+        bad = ~(np.isfinite(P.pos[:n]).all(axis=1) & np.isfinite(P.vel[:n]).all(axis=1))
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            return f"particle {int(P.gid[k])} has a non-finite position/velocity {when} (last cell {int(P.cell[k])})"
+        for name, a in (("velocity u", self.gas.u), ("pressure p", self.gas.p)):
+            ok = np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+            if not ok.all():
+                k = int(np.flatnonzero(~ok)[0])
+                return f"gas {name} is not finite at the node at {self.ma.x_dofs[k].tolist()} m {when}"
+        if self.dem.max_overlap > self.limits.max_overlap:
+            return (
+                f"a particle overlap reached {100 * self.dem.max_overlap:.3g} % of the diameter during the gas step "
+                f"ending {when}, above run.max_overlap = {100 * self.limits.max_overlap:g} %"
+                f"{self._worst_pair()}; lower the DEM step (contact.dt_factor) or stiffen the contacts"
+            )
+        if self.clipped > self.limits.max_clipped_fraction * self._n_nodes:
+            floor = self.case.coupling.void_fraction_floor
+            low = np.flatnonzero(self.gas.eps[: self.ma.num_owned_dofs] <= floor)
+            where = f"; e.g. the node at {self.ma.x_dofs[low[0]].tolist()} m" if low.size else ""
+            return (
+                f"the void fraction sits at its floor {floor:g} on {self.clipped} of {self._n_nodes} nodes {when}, "
+                f"more than run.max_clipped_fraction = {self.limits.max_clipped_fraction:g}{where}: particles are "
+                "packed more densely than the mesh can represent (coarsen the mesh or add filter passes)"
+            )
+        return None
+
+    def _worst_pair(self) -> str:
+        """Where the largest current particle-particle overlap is (for failure messages)."""
+        P = self.dem.particles
+        pl = self.dem.pairs
+        if pl.n == 0 or pl.n != P.n:
+            return ""
+        i = np.repeat(np.arange(pl.n), np.diff(pl.start[: pl.n + 1]))
+        j = pl.nbr[: i.size]
+        delta = 0.5 * (P.diameter[i] + P.diameter[j]) - np.linalg.norm(P.pos[j] - P.pos[i], axis=1)
+        if delta.size == 0:
+            return ""
+        k = int(np.argmax(delta))
+        a, b = int(i[k]), int(j[k])
+        return f" (now largest between particles {int(P.gid[a])} and {int(P.gid[b])} near {P.pos[a].tolist()} m)"
 
     def _originals(self):
         """Diameter (m) and count of the original particles each particle stands for."""
@@ -237,8 +340,8 @@ def build_solver(case, md, log) -> CoupledSolver:
     return CoupledSolver(case, md, dem, gas, log)
 
 
-def run(case, outdir, log, comm=MPI.COMM_WORLD) -> CoupledSolver:
-    """Run a coupled case (`[run] mode = "cfd-dem"`) to its end time; see `febed.run`."""
+def run(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
+    """Run a coupled case (`[run] mode = "cfd-dem"`) to its end time, or continue it from a checkpoint."""
     from febed.run import run_coupled
 
-    return run_coupled(case, outdir, log, comm)
+    return run_coupled(case, outdir, log, comm, restart=restart)

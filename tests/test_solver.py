@@ -149,3 +149,4 @@ def test_outlet_removes_particles_and_a_leak_elsewhere_stops_the_run(tmp_path):
     with pytest.raises(RunFailure, match=r"particle 0 at .* left the mesh other than through an outlet"):
         while s.t < 0.01:
             s.step()
+            s.check()

@@ -38,6 +38,10 @@ DEFAULT_OPTIONS = {
 FALLBACK_OPTIONS = {"pc_type": "gamg"}
 
 
+class PressureSolveError(RuntimeError):
+    """The pressure Poisson solve did not converge (raised on every rank: the solve is collective)."""
+
+
 class PressureSolver:
     """Solve L φ = b for the scaled pressure increment φ = Δt δP / ρ, b given on the owned nodes."""
 
@@ -93,7 +97,10 @@ class PressureSolver:
         self.ksp.solve(self.b, self.x)
         reason = self.ksp.getConvergedReason()
         if reason < 0:
-            raise RuntimeError(f"pressure solve diverged (KSP reason {reason}); check the time step and ε")
+            raise PressureSolveError(
+                f"the pressure solve did not converge (PETSc KSP reason {reason}) after "
+                f"{self.ksp.getIterationNumber()} iterations; check the time step and the void fraction"
+            )
         self.x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         with self.x.localForm() as loc:
             phi = loc.array.copy()

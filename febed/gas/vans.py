@@ -57,6 +57,7 @@ import time
 from dataclasses import dataclass, field
 
 from mpi4py import MPI
+from petsc4py import PETSc
 
 import dolfinx.fem
 import numpy as np
@@ -290,6 +291,32 @@ class VANSSolver:
     def _check_eps(self, eps: np.ndarray) -> None:
         if not (np.all(eps[: self.n_owned] > 0.0) and np.all(eps[: self.n_owned] <= 1.0)):
             raise ValueError("eps (void fraction) must lie in (0, 1] at every node")
+
+    # ------------------------------------------------------------------------------------ checkpoint
+    def get_state(self) -> dict[str, np.ndarray]:
+        """Everything the next step reads, over the owned nodes: q, p, ε, ∇p, Gp and the last increment φ."""
+        n = self.n_owned
+        return {
+            "q": self.q[:n].copy(),
+            "p": self.p[:n].copy(),
+            "eps": self.eps[:n].copy(),
+            "grad_p": self.grad_p[:n].copy(),
+            "gp": self.gp_owned.copy(),
+            "phi": self.pressure.x.array[:n].copy(),  # the warm start of the next pressure solve
+        }
+
+    def set_state(self, state: dict[str, np.ndarray], t: float) -> None:
+        """Restore `get_state()` arrays (owned rows, in this rank's node order) at time t [s]."""
+        n = self.n_owned
+        for name, f in (("q", self._q), ("p", self._p), ("eps", self._eps), ("grad_p", self._gradp)):
+            f.x.array.reshape(self.n_local, -1)[:n] = np.asarray(state[name]).reshape(n, -1)
+            f.x.scatter_forward()
+        self.gp_owned[:] = state["gp"]
+        self.pressure.x.array[:] = state["phi"]
+        self.pressure.x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        self.t = float(t)
+        self._update_u()
+        self._mu_cache = (None, None)
 
     # --------------------------------------------------------------------------------------- outputs
     @property

@@ -68,12 +68,15 @@ def vtp_bytes(pos: np.ndarray, fields: dict[str, np.ndarray]) -> bytes:
 class ParticleWriter:
     """Writes `<outdir>/<name>_NNNNNN.vtp` per output and the collection `<outdir>/<name>.pvd`."""
 
-    def __init__(self, outdir: str | os.PathLike, name: str = "particles", comm=MPI.COMM_WORLD):
-        """Prepare the writer; files go to `outdir` (created if needed)."""
+    def __init__(self, outdir: str | os.PathLike, name: str = "particles", comm=MPI.COMM_WORLD, entries=None):
+        """Prepare the writer; files go to `outdir` (created if needed).
+
+        `entries` [(time, file name), ...] continues a series after a restart (from the checkpoint).
+        """
         self.outdir = Path(outdir)
         self.name = name
         self.comm = comm
-        self.entries: list[tuple[float, str]] = []
+        self.entries: list[tuple[float, str]] = [(float(t), str(f)) for t, f in (entries or [])]
         if comm.rank == 0:
             self.outdir.mkdir(parents=True, exist_ok=True)
 

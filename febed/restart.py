@@ -1,0 +1,189 @@
+"""Checkpoint and restart of a coupled run: what the state is, and which case changes a restart accepts.
+
+The state of a coupled run (`capture`) is
+
+* the gas (`VANSSolver.get_state`): superficial velocity, pressure, void fraction, pressure gradient and the
+  last pressure increment (the warm start of the next Poisson solve), at the owned nodes with their
+  coordinates, so that a restart on another number of ranks finds its nodes by position;
+* the particles (`DEM.get_state`): every particle array by row, the contact history keyed by global-id
+  pairs, and — on one rank — the pair and wall lists themselves, the neighbour-list reference positions and
+  sort counters, so that a serial restart continues bit for bit;
+* the coupled loop's counters (time, gas steps, particles removed, timers, the random generator) and the
+  run's output schedule (next probe / field / particle times, files written so far).
+
+Restarting on another number of ranks keeps every particle and its contact history; only the neighbour
+lists are rebuilt, so results agree to round-off rather than bit for bit.
+
+A restart may change how the run is driven and written (`CHANGEABLE`: end time, output intervals, gas
+time-step bounds, solver options, failure limits) but not the physics or the geometry: any other changed
+key is refused with the list of differences.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from fnmatch import fnmatch
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+
+from febed.io.checkpoint import CheckpointError, gather_rows, match_nodes
+
+CHANGEABLE = (
+    "run.end_time",
+    "run.max_overlap",
+    "run.max_clipped_fraction",
+    "output.*",
+    "gas.cfl",
+    "gas.fourier",
+    "gas.dt_min",
+    "gas.dt_max",
+    "gas.petsc_options",
+    "gas.pressure_rtol",
+    "gas.mass_tolerance",
+)
+_ROWS = "p_"  # DEM state keys holding one row per particle
+_HISTORY = ("saved_keys", "saved_vals", "saved_wkeys", "saved_wvals")
+
+
+# ------------------------------------------------------------------------------------------ case changes
+def _flatten(d: dict, prefix: str = "") -> dict[str, object]:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def case_changes(old_toml: str, new_toml: str) -> tuple[list[str], list[str]]:
+    """Changed keys between two resolved cases, split into (accepted, refused) lines `key: old -> new`."""
+    old, new = _flatten(tomllib.loads(old_toml)), _flatten(tomllib.loads(new_toml))
+    accepted, refused = [], []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key, "(unset)"), new.get(key, "(unset)")
+        if a == b or key in ("output.directory", "run.name", "extends"):
+            continue
+        line = f"{key}: {a!r} -> {b!r}"
+        (accepted if any(fnmatch(key, pat) for pat in CHANGEABLE) else refused).append(line)
+    return accepted, refused
+
+
+# ------------------------------------------------------------------------------------------ the state
+def capture(run) -> tuple[dict[str, np.ndarray], dict]:
+    """This rank's state of a `CoupledRun` (copies): arrays and a JSON-able meta record."""
+    s = run.solver
+    gas = s.gas
+    n = gas.n_owned
+    arrays = {f"gas/{k}": v for k, v in gas.get_state().items()}
+    arrays["gas/x"] = gas.x[:n].copy()
+    dem = s.dem.get_state()
+    for k, v in dem.items():
+        arrays[f"dem/{k}"] = np.array(v, copy=True)
+    meta = {
+        "time": s.t,
+        "step": s.steps,
+        "ranks": run.comm.size,
+        "solver": {
+            "left_outlet": s.left_outlet,
+            "n_sub": s.n_sub,
+            "timers": s.timers.as_dict(),
+            "last_gas": dataclasses.asdict(s.last_gas) if s.last_gas is not None else None,
+            "rng": s.rng.bit_generator.state,
+        },
+        "run": run.schedule(),
+    }
+    return arrays, meta
+
+
+def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> dict[str, np.ndarray]:
+    """The rank-count-independent checkpoint arrays on rank 0 (one rank: the state unchanged)."""
+    if comm.size == 1:
+        return arrays
+    rows = {k: v for k, v in arrays.items() if k.startswith("gas/") or k.startswith(f"dem/{_ROWS}")}
+    rows.update({f"dem/{k}": arrays[f"dem/{k}"] for k in _HISTORY if f"dem/{k}" in arrays})
+    out = gather_rows(rows, comm)
+    scalars = ("time", "steps", "dt", "pl_skin", "pl_builds", "max_overlap")
+    counts = comm.gather(int(arrays["dem/p_pos"].shape[0]), root=0)
+    next_gid = comm.allreduce(int(arrays["dem/p_next_gid"]), op=MPI.MAX)
+    if comm.rank == 0:
+        for k in _HISTORY[::2]:  # cross-partition pairs are held by both ranks: keep each key once
+            key, val = f"dem/{k}", f"dem/{k.replace('keys', 'vals')}"
+            if key in out:
+                out[key], first = np.unique(out[key], return_index=True)
+                out[val] = out[val][first]
+        out.update({f"dem/{k}": arrays[f"dem/{k}"] for k in scalars if f"dem/{k}" in arrays})
+        out["dem/p_next_gid"] = np.array(next_gid)
+        out["dem/has_saved"] = np.array(int("dem/saved_keys" in out))
+        out["dem/lists_valid"] = np.array(0)
+        out["dem/dirty"] = np.array(1)
+        out["dem/rank_counts"] = np.array(counts)
+    return out
+
+
+def restore(run, arrays: dict[str, np.ndarray], meta: dict) -> None:
+    """Put a checkpoint's state into a freshly built `CoupledRun` (every rank holds the whole checkpoint)."""
+    s = run.solver
+    comm = run.comm
+    gas = s.gas
+    n = gas.n_owned
+    width = float(np.min(gas.ops.width[:n], initial=np.inf))
+    h = comm.allreduce(width, op=MPI.MIN)
+    idx = match_nodes(arrays["gas/x"], gas.x[:n], h)
+    gas.set_state({k[4:]: v[idx] for k, v in arrays.items() if k.startswith("gas/") and k != "gas/x"}, meta["time"])
+    dem = {k[4:]: v for k, v in arrays.items() if k.startswith("dem/")}
+    same_layout = meta["ranks"] == comm.size == 1
+    if not same_layout:
+        dem = _portable(dem)
+        if comm.size > 1:
+            dem = _owned_part(run, dem)
+    s.dem.set_state(dem)
+    if not same_layout:  # cell indices are rank-local: search the restored particles afresh
+        s.dem.particles.cell[: s.dem.particles.n_owned] = -1
+    sm = meta["solver"]
+    s.t, s.steps = float(meta["time"]), int(meta["step"])
+    s.left_outlet, s.n_sub = int(sm["left_outlet"]), int(sm["n_sub"])
+    for k, v in sm["timers"].items():
+        setattr(s.timers, k.removeprefix("wall_"), float(v))
+    if sm["last_gas"] is not None:
+        from febed.gas.vans import StepInfo
+
+        s.last_gas = StepInfo(**sm["last_gas"])
+    s.rng.bit_generator.state = sm["rng"]
+    s.reset_coupling()  # locate the restored particles and recompute α_p as at the end of the last step
+    run.set_schedule(meta["run"])
+
+
+def _portable(dem: dict) -> dict:
+    """A DEM state without the rank-local neighbour lists (rebuilt from the keyed history)."""
+    out = {k: v for k, v in dem.items() if not k.startswith(("pl_start", "pl_nbr", "pl_hist", "w_"))}
+    out["lists_valid"], out["dirty"], out["forces_valid"] = 0, 1, 0
+    out.pop("rank_counts", None)
+    return out
+
+
+def _owned_part(run, dem: dict) -> dict:
+    """The rows of the particles whose centre lies in a cell this rank owns (MPI restart)."""
+    owned = run.solver.owned_mask(np.asarray(dem["p_pos"]))
+    return {k: (v[owned] if k.startswith(_ROWS) and k != "p_next_gid" else v) for k, v in dem.items()}
+
+
+def check_restartable(meta: dict, case) -> None:
+    """Raise CheckpointError if the checkpoint cannot continue this case (e.g. it is already past its end)."""
+    if meta["time"] >= case.run.end_time * (1 - 1e-12):
+        raise CheckpointError(
+            f"the checkpoint is at t = {meta['time']:.6g} s, not before run.end_time = {case.run.end_time:g} s: "
+            "nothing to do (raise end_time with --set run.end_time=... to continue)"
+        )
+
+
+def read_resolved(outdir: Path) -> str:
+    """The resolved case a run folder was started with."""
+    from febed.io.rundir import RESOLVED_CASE
+
+    return (Path(outdir) / RESOLVED_CASE).read_text()
