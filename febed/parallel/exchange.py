@@ -78,7 +78,8 @@ class ParticleExchange:
         if cell_owner.shape != (ma.num_cells,):
             raise ValueError(f"cell_owner: must have one rank per local cell ({ma.num_cells},), got {cell_owner.shape}")
         self.ma = ma
-        self.comm = ma.comm if ma.comm is not None else MPI.COMM_SELF
+        self.mesh = None  # keeps a mesh made by `from_mesh` (and its communicator) alive
+        self.comm = (ma.comm if ma.comm is not None else MPI.COMM_SELF).Dup()  # own context: no tag clashes
         self.rank = self.comm.rank
         self.size = self.comm.size
         self.cell_owner = cell_owner
@@ -96,7 +97,9 @@ class ParticleExchange:
         from febed.coupling.mesh_arrays import extract_mesh_arrays
         from febed.parallel.partition import cell_owners
 
-        return cls(extract_mesh_arrays(mesh, Q, depth=depth), cell_owners(mesh))
+        ex = cls(extract_mesh_arrays(mesh, Q, depth=depth), cell_owners(mesh))
+        ex.mesh = mesh
+        return ex
 
     # ------------------------------------------------------------------------------------ reductions
     def _reduce(self, x, op):

@@ -1,0 +1,144 @@
+"""Distributed particles against the serial DEM (run serially and under `mpirun -n 2`).
+
+The mesh is a box split into slabs across z (`slab_partitioner`): on 2 ranks the partition boundary is the plane
+z = H/2, so the cases below put contacts and crossings exactly there. The serial reference is the same DEM
+without an exchange (the compiled multi-step loop), run on every rank.
+"""
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+
+from febed.dem import DEM, DEMParams, Walls
+from febed.parallel import ParticleExchange, slab_partitioner
+
+pytestmark = pytest.mark.mpi
+COMM = MPI.COMM_WORLD
+D, RHO = 1e-3, 2500.0
+
+
+def box_exchange(lo, hi, cells):
+    """An exchange over a hexahedral box mesh cut into z slabs (one per rank)."""
+    import dolfinx.mesh as dm
+
+    mesh = dm.create_box(COMM, [lo, hi], cells, dm.CellType.hexahedron, dm.GhostMode.shared_facet, slab_partitioner())
+    return ParticleExchange.from_mesh(mesh)
+
+
+def gathered(dem):
+    """gid, pos, vel, omega of every rank's owned particles, sorted by gid."""
+    P = dem.particles
+    n = P.n_owned
+    parts = COMM.allgather((P.gid[:n].copy(), P.pos[:n].copy(), P.vel[:n].copy(), P.omega[:n].copy()))
+    gid = np.concatenate([p[0] for p in parts])
+    o = np.argsort(gid)
+    return gid[o], *(np.concatenate([p[k] for p in parts])[o] for k in (1, 2, 3))
+
+
+@pytest.mark.parametrize("integrator", ["rk2", "verlet"])
+def test_two_particles_colliding_across_the_partition_follow_the_serial_trajectory(integrator):
+    L = 0.01  # box L x L x 2L: the partition plane is z = L on 2 ranks
+    ex = box_exchange([0, 0, 0], [L, L, 2 * L], [2, 2, 4])
+
+    def make():
+        p = DEMParams(contact_model="linear-history", kn=1000.0, restitution_pp=0.7, friction_pp=0.3,
+                      integrator=integrator)  # fmt: skip
+        dem = DEM(p)
+        pos = [[L / 2, L / 2, L - 0.6 * D], [L / 2 + 0.3 * D, L / 2 - 0.1 * D, L + 0.6 * D]]
+        vel = [[0.0, 0.05, 0.3], [0.02, 0.0, -0.3]]  # oblique impact with spin: sliding, history, rotation
+        dem.add_particles(np.array(pos), D, RHO, vel=np.array(vel), omega=np.array([[0, 0, 50.0], [10.0, 0, 0]]))
+        return dem
+
+    ref, par = make(), make()
+    par.attach_exchange(ex, distribute=True)
+    if COMM.size == 2:
+        assert par.particles.n_owned == 1  # one on each side
+    z0 = ref.particles.pos[:, 2].copy()
+    for _ in range(30):
+        ref.advance(20, ref.dt)
+        par.advance(20, ref.dt)
+    gid, x, v, w = gathered(par)
+    assert np.array_equal(gid, [0, 1])
+    assert np.all(np.diff(ref.particles.pos[:, 2]) > 0) and ref.particles.vel[0, 2] < 0 < ref.particles.vel[1, 2]
+    assert ref.particles.pos[0, 2] < z0[0] and ref.particles.pos[1, 2] > z0[1]  # they bounced off each other
+    assert np.abs(x - ref.particles.pos).max() <= 1e-12 * L
+    assert np.abs(v - ref.particles.vel).max() <= 1e-12 * 0.3
+    assert np.abs(w - ref.particles.omega).max() <= 1e-12 * 50.0
+
+
+def settling(integrator):
+    """2,000 spheres on a jittered lattice with random velocities in a walled box, 2 (x) by 2 (z) mesh slabs."""
+    W, H = 14 * D, 14 * D  # the bed fills the box: the partition plane z = H/2 cuts it in the middle
+    p = DEMParams(contact_model="linear-history", kn=1000.0, restitution_pp=0.5, restitution_pw=0.5,
+                  friction_pp=0.3, friction_pw=0.3, integrator=integrator)  # fmt: skip
+    dem = DEM(p, walls=Walls.box([0, 0, 0], [W, W, H]))
+    rng = np.random.default_rng(5)
+    k = np.arange(2000)
+    idx = np.stack([k % 13, (k // 13) % 13, k // 169], axis=1)
+    pos = (idx + 0.5) * (1.05 * D) + 0.3 * D + rng.uniform(-0.02, 0.02, (2000, 3)) * D
+    dem.add_particles(pos, D, RHO, vel=rng.normal(0, 0.05, (2000, 3)))
+    return dem, (W, H)
+
+
+@pytest.mark.parametrize("integrator", ["rk2", "verlet"])
+def test_2000_spheres_settling_on_2_ranks_match_serial(integrator):
+    ref, (W, H) = settling(integrator)
+    par, _ = settling(integrator)
+    ex = box_exchange([0, 0, 0], [W, W, H], [3, 3, 4])
+    par.attach_exchange(ex, distribute=True)
+    dt = ref.dt
+    ref.advance(500, dt)
+    for _ in range(5):
+        par.advance(100, dt)
+    gid, x, v, _ = gathered(par)
+    assert gid.size == 2000 and np.array_equal(gid, np.arange(2000))  # none lost, none duplicated
+    o = np.argsort(ref.particles.gid)  # the serial rows are sorted by linked cell
+    rel = np.abs(x - ref.particles.pos[o]).max() / np.abs(ref.particles.pos).max()
+    assert rel <= 1e-9, rel
+    assert np.abs(v - ref.particles.vel[o]).max() <= 1e-7 * np.abs(ref.particles.vel).max()
+    if COMM.size == 2:
+        assert COMM.allreduce(par.particles.n_ghost) > 100  # contacts really crossed the partition
+        assert ex.migrated + COMM.allreduce(ex.migrated) > 0  # and particles changed rank
+    assert ref.max_overlap > 0.001 and abs(COMM.allreduce(par.max_overlap, op=MPI.MAX) - ref.max_overlap) < 1e-9
+
+
+def test_migration_stress_none_lost_or_duplicated_momentum_conserved():
+    """A colliding cloud shaken up and down through the partition plane by a square-wave force, 4 periods."""
+    L = 0.012
+    ex = box_exchange([0, 0, 0], [L, L, 2 * L], [3, 3, 6])
+    p = DEMParams(contact_model="linear-history", kn=1000.0, restitution_pp=0.8, friction_pp=0.3, gravity=0.0)
+    dem = DEM(p)
+    rng = np.random.default_rng(2)
+    centre = np.array([L / 2, L / 2, L])
+    k = np.arange(216)
+    pos = centre + (np.stack([k % 6, (k // 6) % 6, k // 36], axis=1) - 2.5) * 1.1 * D
+    acc, period, chunk = 64.0, 0.05, 40  # amplitude acc period^2 / 32 = 5 mm about the plane, peak speed 0.8 m/s
+    vel = rng.normal(0, 0.05, (216, 3))  # a granular gas: collisions, sliding, history across the plane
+    vel[:, 2] -= acc * period / 4
+    dem.add_particles(pos, D, RHO, vel=vel)
+    dem.attach_exchange(ex, distribute=True)
+    m = dem.particles.mass[0]
+    dt = dem.dt
+    impulse = np.zeros(3)
+    crossings = 0
+    P = dem.particles
+    below = None
+    for c in range(int(4 * period / (chunk * dt))):
+        n = P.n_owned
+        f = np.zeros((n, 3))
+        f[:, :2] = -m * 2000.0 * (P.pos[:n, :2] - centre[:2])  # a weak lateral spring keeps the cloud in the box
+        f[:, 2] = m * acc * (1.0 if (c * chunk * dt) % period < 0.5 * period else -1.0)
+        impulse += COMM.allreduce(f.sum(axis=0)) * chunk * dt
+        dem.advance(chunk, dt, f)
+        n = P.n_owned
+        gids = np.concatenate(COMM.allgather(P.gid[:n].copy()))
+        assert gids.size == 216 and np.unique(gids).size == 216, "particles lost or duplicated"
+        now = np.concatenate(COMM.allgather(P.pos[:n, 2] < L))[np.argsort(gids)]
+        crossings += int(np.sum(now != below)) if below is not None else 0
+        below = now
+    mom = COMM.allreduce((P.mass[: P.n_owned, None] * P.vel[: P.n_owned]).sum(axis=0))
+    assert np.abs(mom - (m * vel.sum(axis=0) + impulse)).max() <= 1e-12 * 216 * m * 0.8
+    assert crossings > 1000, crossings  # each particle crossed the plane several times
+    if COMM.size == 2:
+        assert COMM.allreduce(ex.migrated) > 0.5 * crossings  # crossings are migrations (counted at rebuilds)
