@@ -8,6 +8,11 @@ mesh's bounding box (through an open outlet) are removed and counted in the log.
 The bed: `[particles] bed_file` is loaded if it exists; if it does not and `pack_if_missing`, particles are
 inserted, settled to `settle_energy` and saved there, and the run starts from the packed bed. Without a
 bed file the inserted particles are simply released at t = 0 (a pour).
+
+With MPI (`mpirun -n N febed run`), every rank loads or inserts the same bed, then keeps the particles whose
+centres lie in its own mesh cells (`febed.parallel.ParticleExchange`); particles migrate and ghosts cross the
+partition inside `DEM.advance`. Output gathers every particle once; the log gives the particle load
+imbalance (max/mean particles per rank) at each output.
 """
 
 from __future__ import annotations
@@ -46,14 +51,17 @@ def walls_from_mesh(case, md) -> Walls:
 
 
 def inside_mesh(md, pos: np.ndarray) -> np.ndarray:
-    """Boolean mask of the points (n, 3) inside a cell of the (local) mesh."""
+    """Boolean mask of the points (n, 3) inside a cell of the mesh (of any rank's part; collective with MPI)."""
     from dolfinx import geometry
 
     mesh = md.mesh
     tree = geometry.BoundingBoxTree(mesh, mesh.topology.dim)
     cand = geometry.compute_collisions(tree, np.ascontiguousarray(pos, dtype=np.float64))
     cells = geometry.compute_colliding_cells(mesh, cand, np.ascontiguousarray(pos, dtype=np.float64))
-    return np.diff(cells.offsets) > 0
+    inside = (np.diff(cells.offsets) > 0).astype(np.uint8)
+    if md.comm.size > 1:
+        md.comm.Allreduce(MPI.IN_PLACE, inside, op=MPI.MAX)
+    return inside.astype(bool)
 
 
 def _region(case, md, dim: int) -> tuple[np.ndarray, np.ndarray]:
@@ -98,8 +106,34 @@ def insert_in_mesh(case, md, walls: Walls, dim: int) -> np.ndarray:
     )
 
 
-def build_dem(case, md, log) -> DEM:
-    """The DEM of a case: walls from the mesh and the bed loaded, or inserted (and packed/saved if asked)."""
+def gather_particles(dem: DEM) -> Particles | None:
+    """Every rank's owned particles, ordered by gid, on rank 0 (None elsewhere; collective with MPI)."""
+    P = dem.particles
+    if dem.exchange is None:
+        return P
+    data = {k: v[np.argsort(P.gid[: P.n_owned])] for k, v in P.to_dict().items()}
+    parts = dem.exchange.comm.gather(data, root=0)
+    if dem.exchange.rank != 0:
+        return None
+    data = {k: np.concatenate([d[k] for d in parts]) for k in data}
+    order = np.argsort(data["gid"], kind="stable")
+    return Particles.from_dict({k: v[order] for k, v in data.items()})
+
+
+def particle_exchange(md, comm):
+    """The particle exchange over the mesh partition, or None on one process."""
+    if comm.size == 1:
+        return None
+    from febed.parallel import ParticleExchange
+
+    return ParticleExchange.from_mesh(md.mesh)
+
+
+def build_dem(case, md, log, exchange=None) -> DEM:
+    """The DEM of a case: walls from the mesh and the bed loaded, or inserted (and packed/saved if asked).
+
+    With an `exchange` (MPI), each rank keeps the particles of its own cells and the DEM runs distributed.
+    """
     dim = md.gdim
     walls = walls_from_mesh(case, md)
     log.info(f"DEM walls: {walls.count} facets of tags {wall_tags(case, md)}, dim {dim}")
@@ -108,19 +142,31 @@ def build_dem(case, md, log) -> DEM:
     if bed_path is not None and Path(bed_path).exists():
         parts, _ = load_bed(bed_path)
         log.info(f"loaded packed bed {bed_path}: {parts.n_owned} particles")
-        return DEM.from_case(case, walls=walls, dim=dim, particles=parts)
+        dem = DEM.from_case(case, walls=walls, dim=dim, particles=parts)
+        if exchange is not None:
+            dem.attach_exchange(exchange, distribute=True)
+        return dem
     if bed_path is not None and not p.pack_if_missing:
         raise ValueError(f"[particles] bed_file {bed_path} does not exist and pack_if_missing = false")
     dem = DEM.from_case(case, walls=walls, dim=dim, particles=Particles())
     pos = insert_in_mesh(case, md, walls, dim)
     dem.add_particles(pos, p.diameter, p.density)
+    if exchange is not None:
+        dem.attach_exchange(exchange, distribute=True)
     log.info(f"inserted {pos.shape[0]} particles ({p.insertion}); DEM step {dem.dt:.3e} s")
     if bed_path is not None:
         log.info(f"packing the bed until the mean kinetic energy < {p.settle_energy:g} J ...")
         t = settle(dem, p.settle_energy, max_time=p.settle_max_time, log=log)
-        save_bed(bed_path, dem.particles, settle_time=t)
+        everyone = gather_particles(dem)
+        if md.comm.rank == 0:
+            save_bed(bed_path, everyone, settle_time=t)
+        md.comm.barrier()
         log.info(f"packed in {t:.3f} s of simulated time; saved {bed_path}")
-        dem = DEM.from_case(case, walls=walls, dim=dim, particles=dem.particles)
+        parts = dem.particles
+        parts.n_ghost = 0
+        dem = DEM.from_case(case, walls=walls, dim=dim, particles=parts)
+        if exchange is not None:
+            dem.attach_exchange(exchange)
     return dem
 
 
@@ -129,19 +175,20 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD) -> DEM:
     from febed.io.particles import ParticleWriter
     from febed.meshing import load_case_mesh
 
-    if comm.size > 1:
-        raise ValueError("[run] mode = 'dem' runs on one process for now (the DEM has no MPI decomposition yet)")
     md = load_case_mesh(case, comm)
-    dem = build_dem(case, md, log)
-    lo = md.mesh.geometry.x.min(axis=0) - 1e-9
-    hi = md.mesh.geometry.x.max(axis=0) + 1e-9
+    exchange = particle_exchange(md, comm)
+    dem = build_dem(case, md, log, exchange)
+    lo = np.minimum.reduce(comm.allgather(md.mesh.geometry.x.min(axis=0))) - 1e-9
+    hi = np.maximum.reduce(comm.allgather(md.mesh.geometry.x.max(axis=0))) + 1e-9
     writer = ParticleWriter(Path(outdir) / "particles", comm=comm)
     dt = dem.dt
     end = case.run.end_time
     out_every = case.output.particle_interval
-    log.info(f"DEM: {dem.particles.n_owned} particles, dt = {dt:.3e} s (T_C/{dem.params.dt_factor:g}), "
-             f"{dem.params.integrator}, law {dem.params.contact_model}, to t = {end:g} s")  # fmt: skip
+    log.info(f"DEM: {dem.count()} particles on {comm.size} process(es), dt = {dt:.3e} s "
+             f"(T_C/{dem.params.dt_factor:g}), {dem.params.integrator}, law {dem.params.contact_model}, "
+             f"to t = {end:g} s")  # fmt: skip
     writer.write(dem.time, dem.particles)
+    _log_balance(dem, log)
     next_out = out_every
     start_wall = last_log = time.time()
     left_total = 0
@@ -150,20 +197,37 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD) -> DEM:
         n = max(1, int(round((target - dem.time) / dt)))
         chunk = min(n, 2000)
         dem.advance(chunk, dt)
-        gone = np.any((dem.particles.pos < lo) | (dem.particles.pos > hi), axis=1)
+        x = dem.particles.pos[: dem.particles.n_owned]
+        gone = np.any((x < lo) | (x > hi), axis=1)
         if gone.any():
             left_total += int(gone.sum())
             dem.remove_particles(gone)
         if dem.time >= next_out - 0.5 * dt:
             writer.write(dem.time, dem.particles)
+            _log_balance(dem, log)
             next_out += out_every
-        now = time.time()
+        now = comm.bcast(time.time(), root=0)  # every rank takes the same branch (collective counts)
         if now - last_log > case.output.progress_interval:
             frac = dem.time / end
             eta = (now - start_wall) * (1 - frac) / max(frac, 1e-12)
-            log.info(f"t = {dem.time:.5f} / {end:g} s, {dem.steps} steps, {dem.particles.n_owned} particles, "
-                     f"{left_total} left, ETA {eta:.0f} s")  # fmt: skip
+            log.info(f"t = {dem.time:.5f} / {end:g} s, {dem.steps} steps, {dem.count()} particles, "
+                     f"{comm.allreduce(left_total)} left, ETA {eta:.0f} s")  # fmt: skip
             last_log = now
-    log.info(f"DEM done: t = {dem.time:.5f} s, {dem.steps} steps in {time.time() - start_wall:.1f} s; "
-             f"max overlap {100 * dem.max_overlap:.3f} % d; {left_total} particles left the domain")  # fmt: skip
+    left_total = comm.allreduce(left_total)
+    log.info(
+        f"DEM done: t = {dem.time:.5f} s, {dem.steps} steps in {time.time() - start_wall:.1f} s; "
+        f"max overlap {100 * dem.global_max(dem.max_overlap):.3f} % d; {left_total} particles left the domain"
+    )
+    if dem.exchange is not None:
+        t = dem.exchange.timers
+        log.info("particle exchange: " + ", ".join(f"{k} {comm.allreduce(v, op=MPI.MAX):.2f} s" for k, v in t.items())
+                 + f"; {comm.allreduce(dem.exchange.migrated)} migrations")  # fmt: skip
     return dem
+
+
+def _log_balance(dem: DEM, log) -> None:
+    """Log the particle load imbalance max/mean over ranks (collective; nothing on one process)."""
+    if dem.exchange is None:
+        return
+    total, imbalance, ghosts = dem.exchange.counts(dem.particles)
+    log.info(f"particles per rank: imbalance max/mean {imbalance:.3f} ({total} particles, {ghosts} ghosts)")

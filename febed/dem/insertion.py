@@ -143,8 +143,10 @@ def settle(dem, energy: float, max_time: float = 5.0, chunk: int = 200, log=None
     t0 = dem.time
     if min_time is None:
         g = float(np.linalg.norm(dem.gvec))
-        x = dem.particles.pos[: dem.particles.n_owned]
-        h = float(np.ptp(x @ dem.gvec)) / g if g > 0 and x.shape[0] else 0.0
+        x = dem.particles.pos[: dem.particles.n_owned] @ dem.gvec
+        top = dem.global_max(float(x.max()) if x.size else -np.inf)  # collective with MPI
+        bottom = -dem.global_max(float(-x.min()) if x.size else -np.inf)
+        h = (top - bottom) / g if g > 0 and top > bottom else 0.0
         min_time = math.sqrt(2.0 * h / g) if g > 0 else 0.0
     wall = time.time()
     while dem.time - t0 < max_time:

@@ -195,16 +195,21 @@ class DEM:
         self.touch()
         self._dt = None
 
-    def _global_max(self, x: float) -> float:
+    def global_max(self, x: float) -> float:
+        """Maximum of x over the ranks (x itself without MPI; collective)."""
         return self.exchange.max(x) if self.exchange is not None else x
 
-    def _global_sum(self, x: float) -> float:
+    def global_sum(self, x: float) -> float:
+        """Sum of x over the ranks (x itself without MPI; collective)."""
         return self.exchange.sum(x) if self.exchange is not None else x
 
     @property
     def dt(self) -> float:
-        """Default DEM step T_C / dt_factor (s, seed 001 eq 42)."""
-        if self._dt is None:
+        """Default DEM step T_C / dt_factor (s, seed 001 eq 42; collective with MPI)."""
+        stale = self._dt is None
+        if self.exchange is not None:
+            stale = self.exchange.any(stale)  # particles added/removed on some rank only
+        if stale:
             self._dt = self.critical_time() / self.params.dt_factor
         return self._dt
 
@@ -212,7 +217,7 @@ class DEM:
     def _dmax(self) -> float:
         P = self.particles
         d = float(P.diameter[: P.n_owned].max()) if P.n_owned else 0.0
-        return self._global_max(d)
+        return self.global_max(d)
 
     def _skin(self) -> float:
         d = self._dmax()
@@ -528,11 +533,11 @@ class DEM:
     # ------------------------------------------------------------------ diagnostics
     def kinetic_energy(self) -> float:
         """Kinetic energy (J) of the particles (of every rank: collective with MPI), translation + rotation."""
-        return self._global_sum(self.particles.kinetic_energy())
+        return self.global_sum(self.particles.kinetic_energy())
 
     def count(self) -> int:
         """Number of particles over all ranks (collective with MPI)."""
-        return int(self._global_sum(self.particles.n_owned))
+        return int(self.global_sum(self.particles.n_owned))
 
     def mean_kinetic_energy(self) -> float:
         """Mean kinetic energy per particle (J; collective with MPI)."""
@@ -556,10 +561,10 @@ class DEM:
         if self.walls.count:
             dw = self.walls.distance(P.pos[:n])
             e += 0.5 * self.pw.kn * float(np.sum(np.maximum(r[:n] - dw, 0.0) ** 2))
-        return self._global_sum(e)
+        return self.global_sum(e)
 
     def potential_energy(self) -> float:
         """Gravitational potential energy (J) relative to the origin (collective with MPI)."""
         P = self.particles
         n = P.n_owned
-        return self._global_sum(-float(np.dot(P.mass[:n], P.pos[:n] @ self.gvec)))
+        return self.global_sum(-float(np.dot(P.mass[:n], P.pos[:n] @ self.gvec)))
