@@ -120,6 +120,7 @@ class CoupledSolver:
         self.limits = Limits.from_case(case)
         self.rng = np.random.default_rng(case.run.seed)  # checkpointed with the run (coarse-grain events)
         self._failure = None  # first problem met inside a step, raised collectively by `check`
+        self._exchange = None  # (gid, K_p, F_P) of the last fluid_state: what the particles were given
         self._n_nodes = md.comm.allreduce(self.ma.num_owned_dofs)
         eps0 = self.project()[0]
         gas.set_void_fraction(eps0)
@@ -142,7 +143,11 @@ class CoupledSolver:
         """One gas step: particle sub-steps with the gas frozen → projection → gas step (seed 001 sec 2.4)."""
         dt = self.gas.compute_dt()
         self.n_sub = max(1, math.ceil(dt / self.dem.dt * (1 - 1e-12)))
-        if not self.fixed:
+        if self.fixed:  # the particles do not move, but the gas they see does: their K_p, F_P for this step
+            t0 = time.perf_counter()
+            self.fluid_state(relocate=not self._located_now)
+            self.timers.coupling += time.perf_counter() - t0
+        else:
             self.advance_particles(dt, self.n_sub)  # times itself (DEM / coupling)
         t1 = time.perf_counter()
         eps, K, Kv, force = self.project()
@@ -225,6 +230,7 @@ class CoupledSolver:
         """Locate the particles afresh and recompute α_p (after the particles were replaced, e.g. a restart)."""
         self._failure = None
         self._located_now = False
+        self._exchange = None
         self.project()
 
     # ------------------------------------------------------------------------------------ health
@@ -247,11 +253,13 @@ class CoupledSolver:
         P = self.dem.particles
         n = P.n_owned
         when = f"at t = {self.t:.6g} s (gas step {self.steps})"
-        bad = ~(np.isfinite(P.pos[:n]).all(axis=1) & np.isfinite(P.vel[:n]).all(axis=1))
-        if bad.any():
+        if not (np.isfinite(P.pos[:n]).all() and np.isfinite(P.vel[:n]).all()):  # one pass while all is well
+            bad = ~(np.isfinite(P.pos[:n]).all(axis=1) & np.isfinite(P.vel[:n]).all(axis=1))
             k = int(np.flatnonzero(bad)[0])
             return f"particle {int(P.gid[k])} has a non-finite position/velocity {when} (last cell {int(P.cell[k])})"
         for name, a in (("velocity u", self.gas.u), ("pressure p", self.gas.p)):
+            if np.isfinite(a).all():
+                continue
             ok = np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
             if not ok.all():
                 k = int(np.flatnonzero(~ok)[0])
@@ -309,15 +317,36 @@ class CoupledSolver:
         d_orig, n_orig = self._originals()
         v = self.dem.particles.vel[: self.dem.particles.n_owned]
         K, f_d, f_p, _ = self.coupler.forces(gas.u, gas.eps, gas.grad_p, v, d_orig, n_orig)
+        self._exchange = (self.dem.particles.gid[: v.shape[0]].copy(), K, f_p)
         return K, f_d, f_p
+
+    def _last_exchange(self):
+        """K_p and F_P of the last `fluid_state`, in the current row order (fresh if particles were added)."""
+        P = self.dem.particles
+        gid = P.gid[: P.n_owned]
+        if self._exchange is not None:
+            g0, K, f_p = self._exchange
+            if g0.shape == gid.shape and np.array_equal(g0, gid):
+                return K, f_p
+            order = np.argsort(g0)
+            k = np.searchsorted(g0, gid, sorter=order)
+            if np.all(k < g0.size) and np.array_equal(g0[order[k]], gid):  # rows reordered or removed
+                return K[order[k]], f_p[order[k]]
+        K, _, f_p = self.fluid_state(relocate=False)
+        return K, f_p
 
     def project(self):
         """ε^{n+1} (with its floor), K_i [kg/(m^3 s)], K_i v̄_i and the explicit force density at the nodes.
 
-        The explicit force is −Σ_p ω_{p,i} F_P,p / ΔV_i: with the drag (implicit through K_i), the gas receives
-        minus every fluid force the particles receive (seed 001 eq 29).
+        The particles are located at their new positions (weights ω_{p,i}); K_p and F_P are those the
+        particles were given for the step (`fluid_state` at its start), so the gas is handed the same
+        coefficients, −Σ_p ω_{p,i} K_p (u_i − v_p) implicitly and −Σ_p ω_{p,i} F_P,p / ΔV_i explicitly: with
+        the drag, the gas receives minus every fluid force the particles receive (seed 001 eq 29). It also
+        saves a second interpolation pass per gas step.
         """
-        K, _, f_p = self.fluid_state()  # locates the particles at their new positions
+        self.locate_particles()
+        self._located_now = True
+        K, f_p = self._last_exchange()
         P = self.dem.particles
         d_orig, n_orig = self._originals()
         x = self.coupler.project_to_gas(d_orig, n_orig, K, P.vel[: P.n_owned], F_explicit=f_p)
