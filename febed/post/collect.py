@@ -103,11 +103,13 @@ def _figures(study, rows: list[dict], profiles: dict, height: float, out: Path) 
         ("flux_centre/rhoUf", f"solid flux/ρU_f, centre, z/H={height:g}"),
         ("flux_walls/rhoUf", f"solid flux/ρU_f, walls, z/H={height:g}"),
     ]
-    for p in varied:
+    quantities = [(q, lab) for q, lab in quantities if any(math.isfinite(r[q]) for r in rows)]
+    for p in varied if quantities else []:
         vals = study.parameters[p]
         numeric = _numeric(vals)
         others = [k for k in varied if k != p]
-        fig, axes = plt.subplots(1, len(quantities), figsize=(3.2 * len(quantities), 3.2))
+        fig, axes = plt.subplots(1, len(quantities), figsize=(3.2 * len(quantities), 3.2), squeeze=False)
+        axes = axes[0]
         groups: dict[tuple, list[dict]] = {}
         for r in rows:
             if r.get(p, "") == "":
