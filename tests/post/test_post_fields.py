@@ -268,3 +268,19 @@ def test_probe_series_of_a_running_run(tmp_path):
     assert s["time"].tolist() == [0.0, 0.002] and s["dp_bed"].tolist() == [1.0, 3.0]
     (tmp_path / "probes.csv").write_text("time,dp_bed\n")
     assert read_series(tmp_path) == {}
+
+
+def test_command_line(tmp_path, capsys):
+    """`python -m febed.post RUN_DIR ...` (= `febed post`): tables written, errors as messages with status 2."""
+    from febed.post.cli import main
+
+    pos, bins, _ = lattice()
+    vel = np.array([bin_velocity(i, j) for i, j in bins])
+    run = make_run(tmp_path / "r", [(0.1 * k, pos, vel) for k in range(3)])
+    assert main([str(run), "--bins", "4", "5", "--window", "0", "0.2", "--no-figures", "--kernel", "cic"]) == 0
+    assert "3 particle snapshots" in capsys.readouterr().out
+    data = np.genfromtxt(run / "post" / "fields.csv", delimiter=",", names=True)
+    assert data.size == 20 and np.isclose(data["alpha_p"].sum() * GRID.bin_volume, len(pos) * VP, rtol=1e-12)
+    assert not list((run / "post").glob("*.png"))
+    assert main([str(run), "--window", "5", "6"]) == 2
+    assert "window" in capsys.readouterr().err
