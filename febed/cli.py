@@ -5,6 +5,8 @@
     febed check CASE.toml [--set ...]                                 validate a case and its mesh, run nothing
     febed params [SECTION]                                            every parameter: default, unit, help
     febed mesh NAME [--level L] [--cell C] [--size H] [--extent ...] -o FILE.msh   build a built-in mesh
+    febed post RUN_DIR [--window T0 T1] ...                            time-averaged fields, profiles, series
+    febed study STUDY.toml [--list | --jobs FILE]                      run / resume / compare a case family
 
 Errors in the user's input (case, mesh, output folder, values a solver refuses) are printed as one clear
 message and exit with status 2; a run that fails (a particle escaping, ...) exits with status 3 after
@@ -25,6 +27,7 @@ from mpi4py import MPI
 
 from febed.case import CaseError, load_case
 from febed.meshing import GEOMETRIES, PSEUDO2D_LEVELS, MeshError
+from febed.post import cli as post_cli
 from febed.schema import BOUNDARY, SCHEMA, describe
 
 # run.mode -> module with `run(case, outdir, log)`; a mode whose module is absent is reported clearly.
@@ -77,6 +80,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--size", type=float, default=0.005, help="cell size of unstructured meshes [m]")
     m.add_argument("--extent", type=float, nargs="+", help="box: its lengths lx ly [lz] [m]")
     m.add_argument("-o", "--output", required=True, help="output file (.msh)")
+    post_cli.add_post_parser(sub)
+    post_cli.add_study_parser(sub)
     return p
 
 
@@ -191,7 +196,14 @@ def main(argv: list[str] | None = None) -> int:
     from febed.solver import RunFailure
 
     args = _parser().parse_args(argv)
-    commands = {"run": cmd_run, "check": cmd_check, "params": cmd_params, "mesh": cmd_mesh}
+    commands = {
+        "run": cmd_run,
+        "check": cmd_check,
+        "params": cmd_params,
+        "mesh": cmd_mesh,
+        "post": post_cli.cmd_post,
+        "study": post_cli.cmd_study,
+    }
     try:
         return commands[args.command](args)
     except CaseError as e:
