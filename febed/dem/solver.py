@@ -188,8 +188,7 @@ class DEM:
         self.save_history()
         self.exchange = exchange
         if distribute:
-            exchange.distribute(self.particles)
-            self._saved = None
+            exchange.distribute(self.particles)  # the gid-keyed history (e.g. of set_state) stays valid
         else:
             exchange.set_next_gid(self.particles)
         self.touch()
@@ -457,7 +456,7 @@ class DEM:
             if not name.startswith("_"):
                 s[f"aux_{name}"] = P.aux(name)[: P.n_owned].copy()
         s["p_next_gid"] = int(P.next_gid)
-        keep_lists = self._lists_valid and self.pairs.n == P.n and P.n_ghost == 0
+        keep_lists = self._lists_valid and self.pairs.n == P.n and self.exchange is None
         s["lists_valid"] = int(keep_lists)
         if keep_lists:
             pl = self.pairs
@@ -479,7 +478,7 @@ class DEM:
             s.update(saved_keys=k.copy(), saved_vals=v.copy(), saved_wkeys=wk.copy(), saved_wvals=wv.copy())
         s["pos_ref"] = self.pos_ref[: P.n_owned].copy()
         s["dirty"] = int(self._dirty or not keep_lists)
-        s["forces_valid"] = int(self._forces_valid and P.n_ghost == 0)
+        s["forces_valid"] = int(self._forces_valid and keep_lists)
         s["since_sort"] = int(self._since_sort)
         s["dt"] = float(self._dt) if self._dt is not None else -1.0
         s["time"] = float(self.time)

@@ -142,3 +142,31 @@ def test_migration_stress_none_lost_or_duplicated_momentum_conserved():
     assert crossings > 1000, crossings  # each particle crossed the plane several times
     if COMM.size == 2:
         assert COMM.allreduce(ex.migrated) > 0.5 * crossings  # crossings are migrations (counted at rebuilds)
+
+
+def test_checkpoint_of_a_distributed_run_restarts_on_any_rank_count():
+    from febed.parallel.state import gather_state
+
+    par, (W, H) = settling("rk2")
+    ex = box_exchange([0, 0, 0], [W, W, H], [3, 3, 4])
+    par.attach_exchange(ex, distribute=True)
+    dt = par.dt
+    par.advance(300, dt)
+    state = COMM.bcast(gather_state(par), root=0)
+    assert state["p_gid"].size == 2000 and np.array_equal(state["p_gid"], np.arange(2000))
+    assert state["saved_keys"].size > 20  # sliding contacts: the history matters
+    serial, _ = settling("rk2")  # a fresh DEM (same parameters and walls) on this rank alone
+    serial.set_state(state)
+    again, _ = settling("rk2")  # and one distributed afresh
+    again.set_state(state)
+    again.attach_exchange(ex, distribute=True)
+    for dem in (par, serial, again):
+        dem.advance(300, dt)
+    gid, x, _, _ = gathered(par)
+    gid2, x2, _, _ = gathered(again)
+    o = np.argsort(serial.particles.gid)
+    assert np.array_equal(gid, serial.particles.gid[o]) and np.array_equal(gid, gid2)
+    scale = np.abs(x).max()
+    assert np.abs(x - serial.particles.pos[o]).max() <= 1e-9 * scale
+    assert np.abs(x - x2).max() <= 1e-9 * scale
+    assert serial.time == par.time and serial.steps == par.steps == 600
