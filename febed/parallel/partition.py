@@ -18,12 +18,15 @@ def cell_owners(mesh) -> np.ndarray:
     return own
 
 
-def slab_partitioner():
-    """A DOLFINx cell partitioner giving rank r the r-th contiguous block of global cell indices, with ghosts.
+def slab_partitioner(period: int | None = None):
+    """A DOLFINx cell partitioner giving rank r the r-th block of global cell indices, with ghosts.
 
-    On `dolfinx.mesh.create_box` meshes the blocks are slabs across the slowest index (z in 3D, y in 2D), so
-    the partition boundaries are known planes (for tests and reproducible benchmarks).
+    On `dolfinx.mesh.create_box` hexahedra/quadrilaterals the blocks are slabs across the slowest index (z in 3D,
+    y in 2D), so the partition boundaries are known planes (for tests and reproducible benchmarks). With
+    `period` = the number of cells along x, the blocks are taken of the index modulo `period`: slabs across x.
     """
+    if period is not None and period < 1:
+        raise ValueError(f"period: must be >= 1 (cells along x), got {period}")
     import dolfinx.mesh
     from dolfinx import cpp
 
@@ -31,14 +34,17 @@ def slab_partitioner():
         n = graph.num_nodes
         off = comm.exscan(n) or 0
         tot = comm.allreduce(n)
-        own = (np.arange(off, off + n, dtype=np.int64) * nparts) // tot
+        def owner(c):
+            return (c % period) * nparts // period if period else c * nparts // tot
+
+        own = owner(np.arange(off, off + n, dtype=np.int64))
         data = []
         offs = [0]
         for c in range(n):
             d = [int(own[c])]
             if ghosting:
                 for nb in graph.links(c):
-                    r = int(nb) * nparts // tot
+                    r = int(owner(int(nb)))
                     if r not in d:
                         d.append(r)
             data += d
