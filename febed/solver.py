@@ -41,6 +41,9 @@ from febed.coupling.locate import OUTSIDE_DOMAIN
 from febed.coupling.mesh_arrays import extract_mesh_arrays
 from febed.gas.pressure import PressureSolveError
 
+FLUID = "fluid"  # auxiliary particle array: K_p, F_D + F_P, v_p at the step start, F_P, valid flag
+FLUID_COLUMNS = 11
+
 
 class RunFailure(RuntimeError):
     """The simulation went wrong (a particle escaped, NaN, ...); the message says what, where and when."""
@@ -120,7 +123,6 @@ class CoupledSolver:
         self.limits = Limits.from_case(case)
         self.rng = np.random.default_rng(case.run.seed)  # checkpointed with the run (coarse-grain events)
         self._failure = None  # first problem met inside a step, raised collectively by `check`
-        self._exchange = None  # (gid, K_p, F_P) of the last fluid_state: what the particles were given
         self._n_nodes = md.comm.allreduce(self.ma.num_owned_dofs)
         eps0 = self.project()[0]
         gas.set_void_fraction(eps0)
@@ -165,21 +167,28 @@ class CoupledSolver:
         self.steps += 1
 
     def advance_particles(self, dt: float, n_sub: int) -> None:
-        """`n_sub` DEM steps of dt/n_sub with drag and pressure-gradient forces from the frozen gas."""
+        """`n_sub` DEM steps of dt/n_sub with drag and pressure-gradient forces from the frozen gas.
+
+        K_p, F_D + F_P and v_p at the step start travel with the particles as an auxiliary array (through the
+        DEM's reordering and, with MPI, migration), so each chunk's force K_p (u − v) = F_D + K_p (v0 − v) is
+        formed in the current row order.
+        """
         t0 = time.perf_counter()
-        K, f_d, f_p = self.fluid_state(relocate=not self._located_now)
+        K, _, _ = self.fluid_state(relocate=not self._located_now)
         P = self.dem.particles
         n = P.n_owned
-        gid = P.gid[:n].copy()
-        v0 = P.vel[:n].copy()  # K (u − v) = F_D + K (v0 − v): the drag follows the particle velocity
         tau = float(np.min(P.mass[:n] / np.maximum(K, 1e-300))) if n else math.inf
+        if self.md.comm.size > 1:  # every rank steps the same chunks (the DEM exchanges ghosts per step)
+            tau = self.md.comm.allreduce(tau, op=MPI.MIN)
         ratio = dt / (0.1 * tau)
         chunks = max(1, math.ceil(ratio)) if ratio < n_sub else n_sub  # NaN (a failing run): every sub-step
         h = dt / n_sub
         done = 0
         for k in range(chunks):
             steps = (n_sub * (k + 1)) // chunks - done
-            f = f_d + f_p if k == 0 else f_d + f_p + K[:, None] * (v0 - P.vel[:n])
+            n = P.n_owned
+            a = P.aux(FLUID)[:n]
+            f = a[:, 1:4] if k == 0 else a[:, 1:4] + a[:, :1] * (a[:, 4:7] - P.vel[:n])
             t1 = time.perf_counter()
             self.timers.coupling += t1 - t0
             self.dem.advance(steps, h, f)
@@ -187,10 +196,6 @@ class CoupledSolver:
             t0 = time.perf_counter()
             self.timers.dem += t0 - t1
             done += steps
-            if not np.array_equal(P.gid[:n], gid):  # the DEM reordered its rows: follow them by gid
-                order = np.argsort(gid)
-                perm = order[np.searchsorted(gid, P.gid[:n], sorter=order)]
-                K, f_d, f_p, v0, gid = K[perm], f_d[perm], f_p[perm], v0[perm], gid[perm]
         self.timers.coupling += time.perf_counter() - t0
 
     def locate_particles(self) -> None:
@@ -230,7 +235,6 @@ class CoupledSolver:
         """Locate the particles afresh and recompute α_p (after the particles were replaced, e.g. a restart)."""
         self._failure = None
         self._located_now = False
-        self._exchange = None
         self.project()
 
     # ------------------------------------------------------------------------------------ health
@@ -317,21 +321,21 @@ class CoupledSolver:
         d_orig, n_orig = self._originals()
         v = self.dem.particles.vel[: self.dem.particles.n_owned]
         K, f_d, f_p, _ = self.coupler.forces(gas.u, gas.eps, gas.grad_p, v, d_orig, n_orig)
-        self._exchange = (self.dem.particles.gid[: v.shape[0]].copy(), K, f_p)
+        a = self.dem.particles.attach(FLUID, FLUID_COLUMNS)[: v.shape[0]]
+        a[:, 0] = K
+        a[:, 1:4] = f_d + f_p
+        a[:, 4:7] = v
+        a[:, 7:10] = f_p
+        a[:, 10] = 1.0  # rows added later (e.g. coarse-grain events) have 0: no coefficients yet
         return K, f_d, f_p
 
     def _last_exchange(self):
-        """K_p and F_P of the last `fluid_state`, in the current row order (fresh if particles were added)."""
+        """K_p and F_P the particles were given for this step, in the current row order (fresh if missing)."""
         P = self.dem.particles
-        gid = P.gid[: P.n_owned]
-        if self._exchange is not None:
-            g0, K, f_p = self._exchange
-            if g0.shape == gid.shape and np.array_equal(g0, gid):
-                return K, f_p
-            order = np.argsort(g0)
-            k = np.searchsorted(g0, gid, sorter=order)
-            if np.all(k < g0.size) and np.array_equal(g0[order[k]], gid):  # rows reordered or removed
-                return K[order[k]], f_p[order[k]]
+        n = P.n_owned
+        if FLUID in P.aux_names and P.aux(FLUID)[:n, 10].all():
+            a = P.aux(FLUID)[:n]
+            return np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 7:10])
         K, _, f_p = self.fluid_state(relocate=False)
         return K, f_p
 
