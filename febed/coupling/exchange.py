@@ -49,7 +49,17 @@ class NodalExchange:
 
 
 class Coupler:
-    """Per-run coupling state: particle cells/weights buffers and the chosen drag law (arrays grow on demand)."""
+    """Per-run coupling state: particle cells/weights buffers and the chosen drag law (arrays grow on demand).
+
+    With MPI (particles distributed by `febed.parallel.ParticleExchange`) every rank passes its owned particles
+    only (rows [0, n_owned) of the DEM): they lie in the rank's owned cells at the last pair-list rebuild and
+    in its local (owned or ghost) cells since, so `locate` finds them and the interpolation reads the rank's
+    local nodal values (ghost dofs current after a forward scatter). `project_to_gas` sums the contributions
+    of every rank at the nodes (reverse scatter with addition over ghost dofs, then forward scatter) before
+    the filter and the division by the node volumes, so the nodal fields equal the serial ones to round-off
+    (tests/parallel/test_mpi_coupling.py). Take the cells from `particles.cell` (`reset_cells`) before
+    locating: they follow the rows through sorting and migration, arrivals from other ranks carry -1.
+    """
 
     def __init__(self, ma: MeshArrays, drag: str, rho_g: float, mu_g: float, filter_passes: int = 1,
                  void_floor: float = 0.3, pressure_gradient: bool = True):  # fmt: skip
