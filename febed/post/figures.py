@@ -100,3 +100,27 @@ def series_plot(series: dict, summary, info, path: Path) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def snapshot_maps(grid, info, frames: list[tuple[float, np.ndarray]], path: Path) -> Path:
+    """Instantaneous gas volume fraction 1 − α_p maps at a few times (seed 001 Fig 15)."""
+    plt = _plt()
+    L, H = info.width, info.height
+    top = 1.0
+    alphas = [a for _, a in frames]
+    rows = np.flatnonzero(np.max([a.max(axis=0) for a in alphas], axis=0) > 1e-3)
+    if rows.size:
+        top = float(min(1.0, 1.3 * (grid.centres(1)[rows[-1]] - grid.lo[1]) / H + 0.05))
+    fig, axes = plt.subplots(
+        1, len(frames), figsize=(1.6 * len(frames) + 1.0, 1.2 + 1.5 * top * H / L), sharey=True, squeeze=False
+    )
+    for ax, (t, a) in zip(axes[0], frames, strict=True):
+        im = ax.imshow(
+            (1.0 - a).T, origin="lower", extent=[0, 1, 0, 1], aspect=H / L, cmap="viridis_r", vmin=0.4, vmax=1.0
+        )
+        ax.set(title=f"t = {t:.2f} s", xlabel="x/L", ylim=(0, top))
+    axes[0][0].set_ylabel("z/H")
+    fig.colorbar(im, ax=list(axes[0]), shrink=0.8, label=r"$1-\alpha_p$")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -7,7 +7,7 @@ Files written (x/L, z/H, q_p²/U_f², flux/ρU_f, t/(d_p/U_f): seed 001 §4 scal
     profile_zH<h>.csv             horizontal profiles at z/H = h (default 0.092, seed 001 Figs 13, 18)
     timeseries.csv                t, t/(d_p/U_f), dp_bed, dp_bed/(W/A), bed_height, bed_height/H
     summary.csv                   key, value: window, snapshots, means of dp_bed and bed height, W/A, ...
-    fields.png, profile_zH<h>.png, timeseries.png
+    fields.png, profile_zH<h>.png, timeseries.png, snapshots.png (instantaneous 1 - α_p, seed 001 Fig 15)
 """
 
 from __future__ import annotations
@@ -161,9 +161,21 @@ def post_run(
                     )
                 )
         if figures:
-            from febed.post.figures import field_maps
+            from febed.post.figures import field_maps, snapshot_maps
+            from febed.post.grid import bin_sums
+            from febed.post.rundata import read_snapshot, select_window
 
             files.append(field_maps(avg, out / "fields.png"))
+            chosen, _ = select_window(snaps, avg.window)
+            frames = []
+            for k in np.unique(np.linspace(0, len(chosen) - 1, min(6, len(chosen))).astype(int)):
+                t, path = chosen[k]
+                a = read_snapshot(path)
+                if a is not None:
+                    s0 = bin_sums(avg.grid, a["pos"], a["velocity"], a["diameter"], kernel).s0
+                    frames.append((t, s0 / avg.grid.bin_volume))
+            if frames:
+                files.append(snapshot_maps(avg.grid, info, frames, out / "snapshots.png"))
     if series:
         t = series["time"]
         tref = info.d_p / info.u_f if info.u_f > 0 else math.nan

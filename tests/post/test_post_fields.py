@@ -233,7 +233,7 @@ def test_post_run_writes_tables_and_figures(tmp_path):
     res = post_run(run, window=(0.1, 0.3), bins=BINS)
     names = {f.name for f in res.files}
     assert {"fields.csv", "fields.npz", "profile_zH0.092.csv", "summary.csv", "timeseries.csv"} <= names
-    assert {"fields.png", "profile_zH0.092.png", "timeseries.png"} <= names
+    assert {"fields.png", "profile_zH0.092.png", "timeseries.png", "snapshots.png"} <= names
     sel = (t >= 0.1 - 1e-12) & (t <= 0.3 + 1e-12)
     assert res.summary.dp_mean == pytest.approx(dp[sel].mean(), rel=1e-12)
     assert res.summary.weight_per_area == pytest.approx(w_a, rel=1e-12)
