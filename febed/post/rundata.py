@@ -14,8 +14,10 @@ not depend on the current parameter schema accepting an older run's file.
 
 from __future__ import annotations
 
+import binascii
 import logging
 import math
+import re
 import tomllib
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -191,13 +193,39 @@ def list_snapshots(run_dir: str | Path, name: str = "particles") -> list[tuple[f
     return out
 
 
+_DATA_ARRAY = re.compile(
+    rb'<DataArray type="(\w+)" Name="(\w+)" NumberOfComponents="(\d+)" format="binary">([^<]*)</DataArray>'
+)
+_DTYPES = {b"Float64": np.float64, b"Int64": np.int64, b"Int32": np.int32}
+_WANTED = (b"Points", b"velocity", b"diameter", b"gid", b"n_orig")
+
+
+def _read_vtp_arrays(path: Path) -> dict[str, np.ndarray]:
+    """The arrays post-processing needs from a ParticleWriter .vtp (about twice as fast as a full XML parse)."""
+    data = Path(path).read_bytes()
+    if not data.rstrip().endswith(b"</VTKFile>"):
+        raise ValueError("incomplete file")
+    out = {}
+    for m in _DATA_ARRAY.finditer(data):
+        typ, name, ncomp, payload = m.groups()
+        if name not in _WANTED:
+            continue
+        raw = binascii.a2b_base64(payload)
+        size = int(np.frombuffer(raw[:8], dtype=np.uint64)[0])
+        a = np.frombuffer(raw[8 : 8 + size], dtype=_DTYPES[typ])
+        out[name.decode()] = a.reshape(-1, int(ncomp)) if int(ncomp) > 1 else a
+    return out
+
+
 def read_snapshot(path: str | Path) -> dict[str, np.ndarray] | None:
     """Arrays of one particle snapshot sorted by gid: pos (n, 3), velocity (n, 3), diameter, ...; None if unreadable."""
     from febed.io.particles import read_vtp
 
     try:
-        a = read_vtp(path)
-    except (ET.ParseError, ValueError, KeyError, OSError) as e:
+        a = _read_vtp_arrays(path)
+        if not {"Points", "velocity", "diameter"} <= set(a):
+            a = read_vtp(path)  # written some other way: the full parser
+    except (ET.ParseError, ValueError, KeyError, OSError, binascii.Error) as e:
         log.warning(f"skipping unreadable particle file {path}: {e}")
         return None
     a["pos"] = a.pop("Points").reshape(-1, 3)
