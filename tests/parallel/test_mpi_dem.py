@@ -62,6 +62,7 @@ def test_two_particles_colliding_across_the_partition_follow_the_serial_trajecto
     assert np.array_equal(gid, [0, 1])
     assert np.all(np.diff(ref.particles.pos[:, 2]) > 0) and ref.particles.vel[0, 2] < 0 < ref.particles.vel[1, 2]
     assert ref.particles.pos[0, 2] < z0[0] and ref.particles.pos[1, 2] > z0[1]  # they bounced off each other
+    print(f"two particles {integrator}: deviation {np.abs(x - ref.particles.pos).max() / L:.1e} L")
     assert np.abs(x - ref.particles.pos).max() <= 1e-12 * L
     assert np.abs(v - ref.particles.vel).max() <= 1e-12 * 0.3
     assert np.abs(w - ref.particles.omega).max() <= 1e-12 * 50.0
@@ -95,6 +96,7 @@ def test_2000_spheres_settling_on_2_ranks_match_serial(integrator):
     assert gid.size == 2000 and np.array_equal(gid, np.arange(2000))  # none lost, none duplicated
     o = np.argsort(ref.particles.gid)  # the serial rows are sorted by linked cell
     rel = np.abs(x - ref.particles.pos[o]).max() / np.abs(ref.particles.pos).max()
+    print(f"settling {integrator}: max position deviation {rel:.1e} relative, {COMM.allreduce(ex.migrated)} migrations")
     assert rel <= 1e-9, rel
     assert np.abs(v - ref.particles.vel[o]).max() <= 1e-7 * np.abs(ref.particles.vel).max()
     if COMM.size == 2:
@@ -104,16 +106,16 @@ def test_2000_spheres_settling_on_2_ranks_match_serial(integrator):
 
 
 def test_migration_stress_none_lost_or_duplicated_momentum_conserved():
-    """A colliding cloud shaken up and down through the partition plane by a square-wave force, 4 periods."""
+    """A colliding cloud shaken up and down through the partition plane by a square-wave force, 3 periods."""
     L = 0.012
     ex = box_exchange([0, 0, 0], [L, L, 2 * L], [3, 3, 6])
-    p = DEMParams(contact_model="linear-history", kn=1000.0, restitution_pp=0.8, friction_pp=0.3, gravity=0.0)
+    p = DEMParams(contact_model="linear-history", kn=200.0, restitution_pp=0.8, friction_pp=0.3, gravity=0.0, skin=0.5)
     dem = DEM(p)
     rng = np.random.default_rng(2)
     centre = np.array([L / 2, L / 2, L])
     k = np.arange(216)
     pos = centre + (np.stack([k % 6, (k // 6) % 6, k // 36], axis=1) - 2.5) * 1.1 * D
-    acc, period, chunk = 64.0, 0.05, 40  # amplitude acc period^2 / 32 = 5 mm about the plane, peak speed 0.8 m/s
+    acc, period, chunk = 700.0, 0.015, 20  # amplitude acc period^2 / 32 = 5 mm about the plane, peak speed 2.6 m/s
     vel = rng.normal(0, 0.05, (216, 3))  # a granular gas: collisions, sliding, history across the plane
     vel[:, 2] -= acc * period / 4
     dem.add_particles(pos, D, RHO, vel=vel)
@@ -124,7 +126,7 @@ def test_migration_stress_none_lost_or_duplicated_momentum_conserved():
     crossings = 0
     P = dem.particles
     below = None
-    for c in range(int(4 * period / (chunk * dt))):
+    for c in range(int(3 * period / (chunk * dt))):
         n = P.n_owned
         f = np.zeros((n, 3))
         f[:, :2] = -m * 2000.0 * (P.pos[:n, :2] - centre[:2])  # a weak lateral spring keeps the cloud in the box
@@ -138,10 +140,13 @@ def test_migration_stress_none_lost_or_duplicated_momentum_conserved():
         crossings += int(np.sum(now != below)) if below is not None else 0
         below = now
     mom = COMM.allreduce((P.mass[: P.n_owned, None] * P.vel[: P.n_owned]).sum(axis=0))
-    assert np.abs(mom - (m * vel.sum(axis=0) + impulse)).max() <= 1e-12 * 216 * m * 0.8
-    assert crossings > 1000, crossings  # each particle crossed the plane several times
+    err = np.abs(mom - (m * vel.sum(axis=0) + impulse)).max() / (216 * m * 2.6)
+    moved = COMM.allreduce(ex.migrated)
+    print(f"migration stress: {crossings} crossings, {moved} migrations, momentum error {err:.1e}")
+    assert err <= 1e-12
+    assert crossings > 600, crossings  # the particles crossed the plane 3 times each on average
     if COMM.size == 2:
-        assert COMM.allreduce(ex.migrated) > 0.5 * crossings  # crossings are migrations (counted at rebuilds)
+        assert moved > 0.5 * crossings  # crossings are migrations (counted at rebuilds)
 
 
 def test_checkpoint_of_a_distributed_run_restarts_on_any_rank_count():
