@@ -1,0 +1,216 @@
+r"""Dynamic coarse grain (PCPM): particle-groups that crush and merge, seed 000 sec 2.3.
+
+A group is an integer count n >= 1 of original particles (diameter d_O, material density ρ_p): diameter
+d_O n^{1/3}, mass n m_O, `Particles.n_orig` = n; the drag is n times the drag on one original at the group's
+velocity (`febed.coupling.drag`, the Coupler passes d_O = d / n^{1/3}). `GroupDynamics.update` is called by the
+coupled loop once per gas step:
+
+1. d_cl per group (eqs 32-39, `equivalent_diameter`): eq 37 read as power per unit mass,
+   E_st = F_drag · u / m (W/kg); E_cc of eq 38 from the current contacts (optional, `contact_power`);
+   U_p = (1 - ε)|v|; U_mf from Wen–Yu unless given; ε_max = 0.9997. d_cl is "no crushing" (inf) unless both
+   K > 0 and E_input > 0.
+2. Crushing (eqs 40-43) then merging (eqs 44-46) in one pass over the groups (`group_events`).
+3. The DEM's particles are changed only through `DEM.remove_particles` / `DEM.add_particles`.
+
+Choices where the paper is silent (documented and tested):
+* How often: once per call of `update` (the coupled loop: once per gas step, every `interval` calls).
+* Crush sizes in integers: n_new - 1 = floor(d²/d_cl²) children of k = max(1, floor((d_cl/d_O)³)) originals, the
+  remainder n - (n_new - 1) k >= 1 in the last child (eqs 41-43); a single original never crushes.
+* Where children go: centres uniformly in the parent's sphere (disk in 2D), best of `tries` draws per child;
+  the crush is deferred if any child would overlap a sibling, another group or a wall by more than
+  `overlap_tolerance` of the smaller diameter.
+* Merging: touching groups (overlap > 0) meeting eq 44 (|v_i - v_j| < 0.01 max(|v_i|, |v_j|)), with
+  n_i + n_j <= `max_group` and a merged diameter not above either group's d_cl (so a merge is never undone by the
+  next crush test); the merged group sits at the centre of mass with the mass-weighted velocity (exact momentum,
+  instead of eq 46's "v_i or v_j") and the spin of summed I ω; deferred if it would overlap beyond the tolerance.
+* Events in one pass never touch the same region (a later event intersecting an earlier one waits).
+* Energy: each update reports the change of kinetic + elastic contact energy it caused (J): crushes keep the
+  translational kinetic energy, lose some spin energy and add the elastic energy of tolerated overlaps; merges
+  lose the (small) relative kinetic energy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from febed.coarse.pcpm_kernels import NO_CRUSH, crush_sizes, equivalent_diameter, group_events
+from febed.dem.forces import contact_power
+
+__all__ = ["NO_CRUSH", "EventStats", "GroupDynamics", "crush_sizes", "equivalent_diameter", "u_mf_wen_yu"]
+
+
+def u_mf_wen_yu(d: float, rho_p: float, rho_g: float, mu_g: float, g: float = 9.81) -> float:
+    """Minimum fluidization velocity (m/s) of Wen & Yu: Re_mf = sqrt(33.7² + 0.0408 Ar) - 33.7."""
+    if not (d > 0 and rho_p > rho_g > 0 and mu_g > 0 and g > 0):
+        raise ValueError("u_mf_wen_yu: need d > 0, rho_p > rho_g > 0, mu_g > 0, g > 0")
+    ar = rho_g * (rho_p - rho_g) * g * d**3 / mu_g**2
+    re = math.sqrt(33.7**2 + 0.0408 * ar) - 33.7
+    return re * mu_g / (rho_g * d)
+
+
+@dataclass
+class EventStats:
+    """What one `GroupDynamics.update` did.
+
+    Attributes:
+        groups: particles (groups) after the update; originals: Σ n_orig (unchanged by events).
+        crushed: groups crushed; children: groups they became; merged: merge events (2 groups -> 1).
+        crush_deferred, merge_deferred: events refused for overlap (or capacity); conflicts: events that waited
+            because an earlier event of the same update touched their region.
+        energy_injected: change (J) of kinetic + elastic contact energy caused by the events (0 if not measured).
+        d_cl_min: smallest finite d_cl (m) seen (inf if none).
+    """
+
+    groups: int = 0
+    originals: int = 0
+    crushed: int = 0
+    children: int = 0
+    merged: int = 0
+    crush_deferred: int = 0
+    merge_deferred: int = 0
+    conflicts: int = 0
+    energy_injected: float = 0.0
+    d_cl_min: float = math.inf
+
+    def add(self, other: EventStats) -> None:
+        """Accumulate the event counts and energy of `other` (groups/originals take other's values)."""
+        for name in ("crushed", "children", "merged", "crush_deferred", "merge_deferred", "conflicts"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        self.energy_injected += other.energy_injected
+        self.groups, self.originals = other.groups, other.originals
+        self.d_cl_min = min(self.d_cl_min, other.d_cl_min)
+
+
+class GroupDynamics:
+    """Crushing and merging of particle-groups (seed 000 sec 2.3) driven by the local flow; see module docstring."""
+
+    def __init__(self, d_orig: float, rho_p: float, rho_g: float, mu_g: float, eps_mf: float, gravity: float = 9.81,
+                 u_mf: float | None = None, eps_max: float = 0.9997, max_group: int = 27,
+                 overlap_tolerance: float = 0.05, merge_tolerance: float = 0.01, crush: bool = True,
+                 merge: bool = True, contact_power: bool = True, tries: int = 32, interval: int = 1,
+                 measure_energy: bool = True, seed: int = 12345):  # fmt: skip
+        """Set the original particle (d_orig m, rho_p kg/m^3), gas (rho_g, mu_g) and the model's parameters."""
+        checks = {
+            "d_orig": d_orig > 0, "rho_p": rho_p > rho_g > 0, "mu_g": mu_g > 0, "eps_mf": 0 < eps_mf < 1,
+            "gravity": gravity > 0, "eps_max": eps_mf < eps_max < 1, "max_group": int(max_group) >= 1,
+            "overlap_tolerance": 0 <= overlap_tolerance < 1, "merge_tolerance": merge_tolerance >= 0,
+            "tries": int(tries) >= 1, "interval": int(interval) >= 1,
+            "u_mf": u_mf is None or u_mf > 0,
+        }  # fmt: skip
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(
+                f"GroupDynamics: invalid {bad[0]} (need d_orig > 0, rho_p > rho_g > 0, mu_g > 0, 0 < eps_mf < "
+                "eps_max < 1, gravity > 0, max_group >= 1, 0 <= overlap_tolerance < 1, merge_tolerance >= 0, "
+                "tries >= 1, interval >= 1, u_mf > 0 or None)"
+            )
+        self.d_orig = float(d_orig)
+        self.rho_p, self.rho_g, self.mu_g = float(rho_p), float(rho_g), float(mu_g)
+        self.g = float(gravity)
+        self.eps_mf, self.eps_max = float(eps_mf), float(eps_max)
+        self.u_mf = float(u_mf) if u_mf is not None else u_mf_wen_yu(d_orig, rho_p, rho_g, mu_g, gravity)
+        self.max_group = int(max_group)
+        self.tol = float(overlap_tolerance)
+        self.merge_tol = float(merge_tolerance)
+        self.crush, self.merge = bool(crush), bool(merge)
+        self.use_contact_power = bool(contact_power)
+        self.tries = int(tries)
+        self.interval = int(interval)
+        self.measure_energy = bool(measure_energy)
+        self.rng = np.random.default_rng(seed)
+        self.calls = 0
+        self.total = EventStats()
+
+    # ------------------------------------------------------------------ d_cl (eqs 32-39)
+    def contact_power(self, dem) -> np.ndarray:
+        """E_cc (W/kg) of the owned particles from their current contacts (seed 000 eq 38)."""
+        P = dem.particles
+        n = P.n_owned
+        out = np.zeros(n)
+        if n == 0:
+            return out
+        dem.compute_forces()  # rebuilds the pair list for the current rows if needed
+        pl = dem.pairs
+        contact_power(P.pos, P.vel, P.omega, P.diameter, P.mass, n, pl.start, pl.nbr, pl.hist, dem.pp, out)
+        return out
+
+    def equivalent_diameter(self, dem, eps_at_p, u_at_p, f_drag, e_cc=None) -> np.ndarray:
+        """d_cl (m) of each owned group from ε, gas velocity u (m/s) and drag F (N) at the particles (eqs 32-39)."""
+        P = dem.particles
+        n = P.n_owned
+        eps = np.ascontiguousarray(eps_at_p, dtype=float)
+        u = np.ascontiguousarray(u_at_p, dtype=float)
+        f = np.ascontiguousarray(f_drag, dtype=float)
+        for name, a, shape in (("eps_at_p", eps, (n,)), ("u_at_p", u, (n, 3)), ("f_drag", f, (n, 3))):
+            if a.shape != shape:
+                raise ValueError(f"{name}: must have shape {shape} (owned particles), got {a.shape}")
+        if e_cc is None:
+            e_cc = self.contact_power(dem) if self.use_contact_power else np.zeros(n)
+        out = np.empty(n)
+        equivalent_diameter(eps, u, np.ascontiguousarray(P.vel[:n]), f, np.ascontiguousarray(P.mass[:n]), e_cc,
+                            self.d_orig, self.rho_p, self.rho_g, self.g, self.u_mf, self.eps_mf, self.eps_max,
+                            out)  # fmt: skip
+        return out
+
+    # ------------------------------------------------------------------ events
+    def apply(self, dem, d_cl: np.ndarray) -> EventStats:
+        """Crush and merge the owned groups given their d_cl (m); changes the DEM's particles; returns the stats."""
+        P = dem.particles
+        n = P.n_owned
+        d_cl = np.ascontiguousarray(d_cl, dtype=float)
+        if d_cl.shape != (n,):
+            raise ValueError(f"d_cl: must have shape ({n},), got {d_cl.shape}")
+        if P.n_ghost:
+            raise ValueError("GroupDynamics.apply: ghost particles present; call it on owned particles only")
+        stats = EventStats(d_cl_min=float(d_cl[np.isfinite(d_cl)].min()) if np.isfinite(d_cl).any() else math.inf)
+        if n == 0:
+            return stats
+        e0 = self._energy(dem) if self.measure_energy else 0.0
+        cap = int(P.n_orig[:n].sum()) + n
+        new_pos = np.empty((cap, 3))
+        new_vel = np.empty((cap, 3))
+        new_omega = np.empty((cap, 3))
+        new_n = np.empty(cap, dtype=np.int64)
+        removed = np.zeros(n, dtype=bool)
+        counts = np.zeros(6, dtype=np.int64)
+        W = dem.walls
+        m = group_events(
+            np.ascontiguousarray(P.pos[:n]), np.ascontiguousarray(P.vel[:n]), np.ascontiguousarray(P.omega[:n]),
+            np.ascontiguousarray(P.diameter[:n]), np.ascontiguousarray(P.n_orig[:n]), n, self.d_orig,
+            dem.params.dim == 2, d_cl, self.crush, self.merge, self.max_group, self.merge_tol, self.tol, self.tries,
+            int(self.rng.integers(0, 2**31 - 1)), W.plane_p, W.plane_n, W.facets, W.nv, removed, new_pos, new_vel,
+            new_omega, new_n, counts,
+        )  # fmt: skip
+        stats.crushed, stats.children, stats.merged = int(counts[0]), int(counts[1]), int(counts[2])
+        stats.crush_deferred, stats.merge_deferred, stats.conflicts = int(counts[3]), int(counts[4]), int(counts[5])
+        if m:
+            dem.remove_particles(removed)
+            nn = new_n[:m]
+            dem.add_particles(new_pos[:m], self.d_orig * np.cbrt(nn.astype(float)), self.rho_p, vel=new_vel[:m],
+                              omega=new_omega[:m], n_orig=nn)  # fmt: skip
+        if self.measure_energy and m:
+            stats.energy_injected = self._energy(dem) - e0
+        stats.groups = P.n_owned
+        stats.originals = int(P.n_orig[: P.n_owned].sum())
+        return stats
+
+    def update(self, dem, eps_at_p, u_at_p, f_drag) -> EventStats:
+        """Once per gas step: d_cl from the flow at the particles, then crush/merge (every `interval`-th call)."""
+        self.calls += 1
+        P = dem.particles
+        if (self.calls - 1) % self.interval:
+            return EventStats(groups=P.n_owned, originals=int(P.n_orig[: P.n_owned].sum()))
+        stats = self.apply(dem, self.equivalent_diameter(dem, eps_at_p, u_at_p, f_drag))
+        self.total.add(stats)
+        return stats
+
+    @staticmethod
+    def _energy(dem) -> float:
+        return dem.kinetic_energy() + dem.elastic_energy()
+
+    def crush_sizes(self, n: int, d: float, d_cl: float) -> tuple[int, int, int]:
+        """(originals per full child, number of full children, remainder) of a crush (eqs 40-42)."""
+        return crush_sizes(int(n), float(d), float(d_cl), self.d_orig)
