@@ -175,3 +175,38 @@ def test_checkpoint_of_a_distributed_run_restarts_on_any_rank_count():
     assert np.abs(x - serial.particles.pos[o]).max() <= 1e-9 * scale
     assert np.abs(x - x2).max() <= 1e-9 * scale
     assert serial.time == par.time and serial.steps == par.steps == 600
+
+
+def test_2d_bed_on_2_ranks_matches_serial():
+    """Spheres moving in the x-y plane (2D mode) on a quadrilateral mesh cut across y."""
+    import dolfinx.mesh as dm
+
+    W, H = 20 * D, 20 * D
+    mesh = dm.create_rectangle(COMM, [[0, 0], [W, H]], [4, 4], dm.CellType.quadrilateral, dm.GhostMode.shared_facet,
+                               slab_partitioner())  # fmt: skip
+    ex = ParticleExchange.from_mesh(mesh)
+
+    def make():
+        p = DEMParams(dim=2, contact_model="linear-history", kn=1000.0, restitution_pp=0.6, friction_pp=0.3)
+        dem = DEM(p, walls=Walls.box([0, 0, -D], [W, H, D], dim=2))
+        rng = np.random.default_rng(1)
+        k = np.arange(300)
+        pos = np.zeros((300, 3))
+        pos[:, 0] = (k % 17 + 0.8) * 1.1 * D + rng.uniform(-0.03, 0.03, 300) * D
+        pos[:, 1] = (k // 17 + 0.8) * 1.05 * D
+        vel = np.zeros((300, 3))
+        vel[:, :2] = rng.normal(0, 0.05, (300, 2))
+        dem.add_particles(pos, D, RHO, vel=vel)
+        return dem
+
+    ref, par = make(), make()
+    par.attach_exchange(ex, distribute=True)
+    dt = ref.dt
+    ref.advance(600, dt)
+    for _ in range(3):
+        par.advance(200, dt)
+    gid, x, _, w = gathered(par)
+    o = np.argsort(ref.particles.gid)
+    assert np.array_equal(gid, np.arange(300))
+    assert np.abs(x - ref.particles.pos[o]).max() <= 1e-9 * H
+    assert np.all(x[:, 2] == 0.0) and np.all(w[:, :2] == 0.0)
