@@ -49,6 +49,7 @@ class Particles:
         self.n_owned = 0
         self.n_ghost = 0
         self.next_gid = int(first_gid)
+        self.gid_limit = GID_LIMIT  # gids of this process stay below it (the parallel layer gives each rank a block)
         self._aux: dict[str, np.ndarray] = {}
         self._alloc(int(capacity))
 
@@ -136,8 +137,8 @@ class Particles:
         rho = np.broadcast_to(np.asarray(density, dtype=float), (k,))
         if k and (np.any(d <= 0) or np.any(rho <= 0)):
             raise ValueError("diameter and density must be > 0")
-        if self.next_gid + k >= GID_LIMIT:
-            raise ValueError(f"gid space exhausted (gids must stay below {GID_LIMIT})")
+        if self.next_gid + k > self.gid_limit:
+            raise ValueError(f"gid space exhausted (this process's gids must stay below {self.gid_limit})")
         self.n_ghost = 0
         self.reserve(self.n_owned + k)
         s = slice(self.n_owned, self.n_owned + k)

@@ -196,7 +196,10 @@ class ParticleExchange:
         P = particles
         base = self.max(int(P.next_gid))
         stride = (GID_LIMIT - 1 - base) // self.size
+        if stride < 1:
+            raise ValueError(f"gid space exhausted: gids up to {base} are in use (limit {GID_LIMIT})")
         P.next_gid = base + self.rank * stride
+        P.gid_limit = P.next_gid + stride
 
     # ------------------------------------------------------------------------------------ migration
     def migrate(self, particles, saved=None, wsaved=None):

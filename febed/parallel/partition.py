@@ -34,6 +34,7 @@ def slab_partitioner(period: int | None = None):
         n = graph.num_nodes
         off = comm.exscan(n) or 0
         tot = comm.allreduce(n)
+
         def owner(c):
             return (c % period) * nparts // period if period else c * nparts // tot
 

@@ -30,7 +30,7 @@ def merge_states(states: list[dict]) -> dict:
         out[k] = first[k]
     out["pl_builds"] = max(int(s.get("pl_builds", 0)) for s in states)
     out["max_overlap"] = max(float(s.get("max_overlap", 0.0)) for s in states)
-    out["p_next_gid"] = max(int(s["p_next_gid"]) for s in states)
+    out["p_next_gid"] = int(out["p_gid"].max()) + 1 if out["p_gid"].size else 0  # per-rank gid blocks start over
     out["pos_ref"] = out["p_pos"].copy()
     out["lists_valid"] = 0
     out["dirty"] = 1
