@@ -208,34 +208,38 @@ def _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, 
 
 
 def rk2_staged(dem, n_steps: int, dt: float) -> float:
-    """RK2 steps stage by stage with ghost updates before each force evaluation (MPI); returns max overlap (m)."""
+    """RK2 steps stage by stage with ghost updates before each force evaluation (MPI); returns max overlap (m).
+
+    Same kernels and arithmetic as `rk2_steps`. The end-of-step ghost update carries the rebuild criterion's
+    reduction over the ranks (two synchronisations per step).
+    """
     ex = dem.exchange
     p = dem.params
     dim2 = p.dim == 2
     h = 0.5 * dt
     worst = 0.0
     P, W, pl, (x0, v0, w0, htmp, whtmp) = dem.kernel_args()
+    ex.update_ghosts(P, P.vel, P.omega)
     for _ in range(n_steps):
         fx = P.aux("_fext")
-        ex.update_ghosts(P, P.vel, P.omega)
         compute_forces(
             P.pos, P.vel, P.omega, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, htmp,
-            dem.wstart, dem.wid, dem.whist, whtmp, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw, 0.0,
-            dt, p.rotation, dem.gvec, P.force, P.torque,
+            dem.wstart, dem.wid, dem.whist, whtmp, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw, 0.0, dt,
+            p.rotation, dem.gvec, P.force, P.torque,
         )  # fmt: skip
-        _rk2_half(P.n_owned, h, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation, dim2,
-                  x0, v0, w0)  # fmt: skip
+        _rk2_half(P.n_owned, h, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation, dim2, x0,
+                  v0, w0)  # fmt: skip
         ex.update_ghosts(P, P.vel, P.omega)
         w = compute_forces(
-            P.pos, P.vel, P.omega, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist,
-            pl.hist, dem.wstart, dem.wid, dem.whist, dem.whist, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp,
-            dem.pw, h, dt, p.rotation, dem.gvec, P.force, P.torque,
+            P.pos, P.vel, P.omega, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, pl.hist,
+            dem.wstart, dem.wid, dem.whist, dem.whist, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw, h, dt,
+            p.rotation, dem.gvec, P.force, P.torque,
         )  # fmt: skip
         worst = max(worst, w)
-        far = _rk2_full(P.n_owned, dt, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia,
-                        p.rotation, dim2, x0, v0, w0, dem.pos_ref)  # fmt: skip
-        if ex.max(far) > 0.5 * pl.skin:
-            dem.rebuild()
+        far = _rk2_full(P.n_owned, dt, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation,
+                        dim2, x0, v0, w0, dem.pos_ref)  # fmt: skip
+        if ex.update_ghosts(P, P.vel, P.omega, far) > 0.5 * pl.skin:  # ghosts ready for the next step ...
+            dem.rebuild()  # ... unless the lists must be rebuilt (which refreshes them)
             P, W, pl, (x0, v0, w0, htmp, whtmp) = dem.kernel_args()
     return worst
 
@@ -243,7 +247,8 @@ def rk2_staged(dem, n_steps: int, dt: float) -> float:
 def verlet_staged(dem, n_steps: int, dt: float) -> float:
     """Velocity Verlet step by step with ghost updates before each force evaluation (MPI); returns max overlap (m).
 
-    Same kernels and arithmetic as `verlet_steps`; the rebuild decision is taken over all ranks.
+    Same kernels and arithmetic as `verlet_steps`; the ghost update after each drift carries the rebuild
+    criterion's reduction over the ranks (one synchronisation per step).
     """
     ex = dem.exchange
     p = dem.params
@@ -253,27 +258,27 @@ def verlet_staged(dem, n_steps: int, dt: float) -> float:
     P, W, pl, (vp, wp, _, _, _) = dem.kernel_args()
     far = _verlet_drift(P.n_owned, dt, h, P.pos, P.vel, P.omega, P.force, P.torque, P.aux("_fext"), P.mass,
                         P.inertia, p.rotation, dim2, vp, wp, dem.pos_ref, 0.5 * pl.skin)  # fmt: skip
-    resume = ex.any(far)
+    resume = ex.update_ghosts(P, vp, wp, float(far)) > 0.0
     for s in range(n_steps):
         if resume:
             dem.rebuild()
             P, W, pl, (vp, wp, _, _, _) = dem.kernel_args()
             _verlet_predict(P.n_owned, h, P.vel, P.omega, P.force, P.torque, P.aux("_fext"), P.mass, P.inertia,
                             p.rotation, vp, wp)  # fmt: skip
+            ex.update_ghosts(P, vp, wp)
         fx = P.aux("_fext")
-        ex.update_ghosts(P, vp, wp)
         w = compute_forces(
             P.pos, vp, wp, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, pl.hist,
-            dem.wstart, dem.wid, dem.whist, dem.whist, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw,
-            dt, dt, p.rotation, dem.gvec, P.force, P.torque,
+            dem.wstart, dem.wid, dem.whist, dem.whist, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw, dt, dt,
+            p.rotation, dem.gvec, P.force, P.torque,
         )  # fmt: skip
         worst = max(worst, w)
         if s + 1 == n_steps:
             _kick(P.n_owned, h, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation, dim2)
         else:
-            far = _verlet_drift(P.n_owned, dt, dt, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass,
-                                P.inertia, p.rotation, dim2, vp, wp, dem.pos_ref, 0.5 * pl.skin)  # fmt: skip
-            resume = ex.any(far)
+            far = _verlet_drift(P.n_owned, dt, dt, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia,
+                                p.rotation, dim2, vp, wp, dem.pos_ref, 0.5 * pl.skin)  # fmt: skip
+            resume = ex.update_ghosts(P, vp, wp, float(far)) > 0.0
     return worst
 
 

@@ -304,13 +304,15 @@ class ParticleExchange:
         self._rbuf = np.empty((m, 9))
         self.timers["ghosts"] += time.perf_counter() - t0
 
-    def update_ghosts(self, particles, vel: np.ndarray, omega: np.ndarray) -> None:
+    def update_ghosts(self, particles, vel: np.ndarray, omega: np.ndarray, local_max: float | None = None):
         """Copy the owners' pos, `vel`, `omega` ((n, 3), indexed like the particle rows) into the ghost rows.
 
         vel/omega are the velocities the force evaluation uses (the particle's, or Verlet's predicted ones).
+        With `local_max`, its maximum over the ranks is reduced in the same round of messages and returned
+        (the stepping's rebuild criterion: one synchronisation instead of two).
         """
         if self.size == 1:
-            return
+            return local_max
         t0 = time.perf_counter()
         P = particles
         rows = self._send_rows
@@ -319,6 +321,9 @@ class ParticleExchange:
         sb[:, 3:6] = vel[rows]
         sb[:, 6:9] = omega[rows]
         reqs = []
+        if local_max is not None:
+            red = np.array([local_max, 0.0])
+            reqs.append(self.comm.Iallreduce(red[:1], red[1:], op=MPI.MAX))
         for r in range(self.size):
             a, b = self._recv_start[r], self._recv_start[r + 1]
             if b > a:
@@ -333,6 +338,7 @@ class ParticleExchange:
         vel[g] = rb[:, 3:6]
         omega[g] = rb[:, 6:9]
         self.timers["update"] += time.perf_counter() - t0
+        return float(red[1]) if local_max is not None else None
 
     def counts(self, particles) -> tuple[int, float, int]:
         """(total, max/mean imbalance, ghosts total) of the owned particles over ranks (collective)."""
