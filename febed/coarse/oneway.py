@@ -74,12 +74,12 @@ class OneWay:
     def step(self, h: float) -> None:
         """One drag window of h (s): drag evaluated now, then DEM sub-steps of at most the DEM's dt."""
         dem = self.dem
-        n_sub = max(1, math.ceil(h / dem.dt * (1.0 - 1e-12)))
         if dem.particles.n_owned:
+            n_sub = max(1, math.ceil(h / dem.dt * (1.0 - 1e-12)))
             f, _ = self._drag(h)
             dem.advance(n_sub, h / n_sub, f)
         else:
-            dem.advance(n_sub, h / n_sub)
+            dem.advance(1, h)  # nothing to move: the clock advances
         self.t += h
         self.windows += 1
         if self.sink is not None and dem.particles.n_owned:
@@ -92,7 +92,12 @@ class OneWay:
     def advance(self, t_end: float, h: float | None = None, callback: Callable | None = None) -> None:
         """Advance to time t_end (s) in drag windows of h (default min(τ_min / drag_factor, DEM dt))."""
         while self.t < t_end * (1.0 - 1e-12):
-            hh = h if h is not None else min(self.relaxation_time() / self.drag_factor, max(self.dem.dt, 1e-300))
+            if h is not None:
+                hh = h
+            elif self.dem.particles.n_owned:
+                hh = min(self.relaxation_time() / self.drag_factor, self.dem.dt)
+            else:
+                hh = t_end - self.t  # no particles: nothing happens (pass h when a callback feeds particles)
             hh = min(hh, t_end - self.t)
             self.step(hh)
             if callback is not None:

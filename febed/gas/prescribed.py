@@ -13,7 +13,7 @@ The particles feel the gas; the gas does not feel them (void fraction 1). A fiel
   i.e. u_x = -ω (y - y_c) - a ω (x - x_c), u_y = ω (x - x_c) - a ω (y - y_c). Seed 003 uses a = 0.1, w = 0
   (vortex test, 300 rpm) and a = 5, w = 1 m/s (classifier, 5000 rpm).
   A Stokes particle (τ = ρ_p d² / 18 μ) in this field drifts outwards if τ ω > a and inwards if τ ω < a, so the
-  classifier's cut size is d_c = sqrt(18 μ a / (ρ_p ω)) (183 μm for Table 3's originals, between the 160 and
+  classifier's cut size is d_c = sqrt(18 μ a / (ρ_p ω)) (176 μm for Table 3's originals, between the 160 and
   220 μm the paper finds).
 * ``function``: any Python function ``module:function`` taking (x (N, 3) m, t s) and returning u (N, 3) m/s.
 
