@@ -1,0 +1,106 @@
+"""Coarse-graining cost: TM parcels at l = 1, 2, 3 (DEM cost per simulated second), PCPM update cost, one-way driver.
+
+Run: `python benchmarks/coarse.py [--quick]`. Prints figures and the machine; asserts nothing.
+"""
+
+import argparse
+import os
+import platform
+import time
+
+import numpy as np
+
+from febed.coarse.oneway import OneWay
+from febed.coarse.pcpm import NO_CRUSH, GroupDynamics
+from febed.coarse.tm import tm_dem_params, tm_parcels
+from febed.dem import DEM, DEMParams, Walls
+from febed.dem.insertion import random_positions
+from febed.gas.prescribed import make_prescribed_gas
+
+
+def machine():
+    cpu = "?"
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"{os.cpu_count()} cpus, {cpu}, {platform.python_version()}"
+
+
+def tm_bench(n_orig_total, steps):
+    d0, rho = 1.5e-3, 1150.0  # seed 000 Table 2
+    base = DEMParams(kn=800.0, restitution_pp=0.9, restitution_pw=0.9, friction_pp=0.3)
+    ref = None
+    print(f"TM: {n_orig_total} originals in a box, {steps} DEM steps each (gravity, settling)")
+    print(f"{'l':>4} {'parcels':>8} {'dt (us)':>9} {'us/step':>9} {'s per simulated s':>18} {'rel. to l=1':>11}")
+    for ratio in (1.0, 2.0, 3.0):
+        d, n = tm_parcels(d0, ratio)
+        count = max(1, round(n_orig_total / n))
+        side = (count * 2.5) ** (1 / 3) * d * 1.3
+        lo, hi = np.zeros(3), np.array([side, side, 2 * side])
+        dem = DEM(tm_dem_params(base, ratio), walls=Walls.box(lo, hi))
+        dem.add_particles(random_positions(count, lo, hi, d * 1.05, seed=1), d, rho, n_orig=n)
+        dem.advance(20)  # compile + first build
+        t0 = time.perf_counter()
+        dem.advance(steps)
+        w = (time.perf_counter() - t0) / steps
+        per_sim = w / dem.dt
+        ref = ref or per_sim
+        print(f"{ratio:4.0f} {count:8d} {dem.dt * 1e6:9.2f} {w * 1e6:9.1f} {per_sim:18.3g} {per_sim / ref:11.3f}")
+
+
+def pcpm_bench(count, calls):
+    d0, rho = 1.5e-3, 1150.0
+    lo, hi = np.zeros(3), np.full(3, (count * 8 * 4.0) ** (1 / 3) * d0)
+    dem = DEM(DEMParams(gravity=0.0, kn=800.0), walls=Walls.box(lo, hi))
+    rng = np.random.default_rng(0)
+    n0 = rng.integers(1, 9, count)
+    dem.add_particles(random_positions(count, lo, hi, 2.05 * d0, seed=2), d0 * np.cbrt(n0), rho,
+                      vel=rng.normal(0, 0.1, (count, 3)), n_orig=n0)  # fmt: skip
+    gd = GroupDynamics(d0, rho, 1.28, 1.7e-5, 0.45, merge_tolerance=0.5, measure_energy=False)
+    P = dem.particles
+    gd.apply(dem, np.full(P.n_owned, NO_CRUSH))  # compile
+    ev = 0
+    t0 = time.perf_counter()
+    for _ in range(calls):
+        n = P.n_owned
+        dcl = np.where(rng.random(n) < 0.02, 0.6 * P.diameter[:n], NO_CRUSH)
+        s = gd.apply(dem, dcl)
+        ev += s.crushed + s.merged
+    w = (time.perf_counter() - t0) / calls
+    n = P.n_owned
+    eps = np.full(n, 0.7)
+    u = np.tile([0, 0, 1.0], (n, 1))
+    f = 10.0 * P.mass[:n, None] * u
+    gd.equivalent_diameter(dem, eps, u, f)
+    t0 = time.perf_counter()
+    for _ in range(calls):
+        gd.equivalent_diameter(dem, eps, u, f)
+    w2 = (time.perf_counter() - t0) / calls
+    print(f"PCPM: {count} groups: apply {w * 1e3:.2f} ms/call ({ev / calls:.1f} events/call), "
+          f"d_cl with contact power {w2 * 1e3:.2f} ms/call")  # fmt: skip
+
+
+def oneway_bench(count, windows):
+    dem = DEM(DEMParams(kn=1e-3, gravity=0.0, rotation=False))
+    lo, hi = np.array([-4e-4, -4e-4, 0]), np.array([4e-4, 4e-4, 4e-3])
+    dem.add_particles(random_positions(count, lo, hi, 12e-6, seed=3), 10e-6, 1000.0)
+    ow = OneWay(dem, make_prescribed_gas("vortex", rpm=300.0, inflow_ratio=0.1), "stokes")
+    ow.step(1e-5)
+    t0 = time.perf_counter()
+    for _ in range(windows):
+        ow.step(6e-5)
+    w = (time.perf_counter() - t0) / windows
+    print(f"one-way: {count} particles of 10 um in the seed-003 vortex: {w * 1e3:.2f} ms per drag window "
+          f"({dem.steps} DEM steps so far)")  # fmt: skip
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    a = ap.parse_args()
+    print(machine())
+    tm_bench(2000 if a.quick else 8000, 100 if a.quick else 400)
+    pcpm_bench(1000 if a.quick else 4000, 5 if a.quick else 20)
+    oneway_bench(200 if a.quick else 1000, 20 if a.quick else 100)
