@@ -130,3 +130,23 @@ def parcel_count(n_orig_total: int, ratio: float) -> int:
     """Number of parcels (rounded to nearest, at least 1) that carry n_orig_total originals at ratio l."""
     n = check_ratio(ratio)
     return max(1, int(np.rint(n_orig_total / n)))
+
+
+def use_group_contacts(dem, d_orig: float, rho: float) -> None:
+    """Give `dem` per-pair TM contact scaling for groups of any sizes (PCPM; `febed.dem.contact.linear_groups`).
+
+    The DEM's particle-particle and wall parameters (of the originals, law `linear`) become `GroupParams` with
+    the original pair's effective mass m_O/2 (walls: m_O), m_O = rho pi d_orig^3 / 6. No kernel signature
+    changes: the law reads each pair's ratio from the effective mass it already receives. The DEM step is still
+    computed from the unscaled parameters, which is conservative (the scaled contact time is sqrt(l) longer).
+    """
+    from febed.dem.contact import GroupParams, LinearParams
+
+    if not isinstance(dem.pp, LinearParams):
+        raise ValueError("use_group_contacts: contact.model must be 'linear' (the history law is not scaled per pair)")
+    if not (d_orig > 0 and rho > 0):
+        raise ValueError(f"d_orig, rho: must be > 0, got {d_orig}, {rho}")
+    m_o = rho * math.pi / 6.0 * d_orig**3
+    dem.pp = GroupParams(dem.pp.kn, dem.pp.ce, dem.pp.mu, 0.5 * m_o)
+    dem.pw = GroupParams(dem.pw.kn, dem.pw.ce, dem.pw.mu, m_o)
+    dem.touch()

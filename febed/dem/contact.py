@@ -182,7 +182,47 @@ def linear_history(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, 
     return fn * nx + ftx, fn * ny + fty, fn * nz + ftz, ex, ey, ez
 
 
+GroupParams = namedtuple("GroupParams", "kn ce mu m_ref")
+GroupParams.__doc__ = (
+    "`linear` of the originals scaled per pair by TM (seed 000 eqs 24-25): kn (N/m), ce, mu of one original pair, "
+    "m_ref (kg) the effective mass of an original pair (m_O/2, or m_O for walls)."
+)
+
+
+@njit(cache=True, fastmath=FAST, error_model="numpy")
+def linear_groups(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, dt_eval, dt_store):
+    """`linear` for particle-groups of any sizes: TM scaling with the pair's own ratio l, force on a (N).
+
+    l^3 = m_eff / m_ref (the pair's effective mass in original pairs: l for two groups of l^3 originals, the
+    harmonic mean of l_a^3 and l_b^3 otherwise, m_a / m_O against a wall); then k_n = l^2 kn and
+    c_e = ce sqrt(l) (capped at 0.99, overdamped otherwise) as `febed.coarse.tm.tm_contact_params`, so that the
+    force is l^3 times the original pair's at overlap delta/l (seed 000 eq 24); Coulomb friction unchanged.
+    """
+    l_ = (m_eff / p.m_ref) ** (1.0 / 3.0)
+    kn = p.kn * l_ * l_
+    ce = min(p.ce * math.sqrt(l_), 0.99)
+    vn = vx * nx + vy * ny + vz * nz
+    fn = -kn * delta - 2.0 * ce * math.sqrt(kn * m_eff) * vn  # seed 001 eq 8 with seed 000 eq 24 scaling
+    fx = fn * nx
+    fy = fn * ny
+    fz = fn * nz
+    tx = vx - vn * nx
+    ty = vy - vn * ny
+    tz = vz - vn * nz
+    vt = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if vt > 0.0 and p.mu > 0.0:
+        ft = p.mu * abs(fn)  # seed 001 eq 9 / seed 000 eq 25
+        if dt_store > 0.0:
+            ft = min(ft, mt_eff * vt / dt_store)
+        s = -ft / vt
+        fx += s * tx
+        fy += s * ty
+        fz += s * tz
+    return fx, fy, fz, 0.0, 0.0, 0.0
+
+
 _LAWS = {
+    GroupParams: ContactLaw("linear-groups", linear_groups, GroupParams, False),
     LinearParams: CONTACT_LAWS.register("linear")(ContactLaw("linear", linear, LinearParams, False)),
     HistoryParams: CONTACT_LAWS.register("linear-history")(
         ContactLaw("linear-history", linear_history, HistoryParams, True)
@@ -219,12 +259,14 @@ def get_law(name: str) -> ContactLaw:
 
 __all__ = [
     "ContactLaw",
+    "GroupParams",
     "HistoryParams",
     "LinearParams",
     "contact_time",
     "damping_ratio",
     "get_law",
     "linear",
+    "linear_groups",
     "linear_history",
     "pair_force",
     "stiffness_from_material",

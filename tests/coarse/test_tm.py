@@ -160,3 +160,37 @@ def test_parcel_drag_is_n_orig_times_original(name):
         slip = np.linalg.norm(np.r_[u[p, :2], 0.0] - vv[0])
         assert k[0] == pytest.approx(n_orig[p] * law(eps[p], slip, 5e-4, 1.2, 1.8e-5), rel=1e-12)
         assert np.allclose(f[0], k[0] * (np.r_[u[p, :2], 0.0] - vv[0]), rtol=1e-13)
+
+
+def test_group_contacts_scale_per_pair():
+    """PCPM groups: the per-pair law reproduces the uniform-ratio TM parameters and contact time."""
+    from febed.coarse.tm import use_group_contacts
+    from febed.dem.contact import GroupParams, linear_groups
+
+    base = DEMParams(contact_model="linear", kn=KN, restitution_pp=0.8, friction_pp=0.3, gravity=0.0, rotation=False)
+    p = DEM(base).pp
+    for ratio in (1.0, 2.0, 3.0):
+        m_eff = ratio**3 * M / 2
+        q = tm_contact_params(p, ratio)
+        g = GroupParams(p.kn, p.ce, p.mu, M / 2)
+        args = (2e-6 * ratio, 0.0, 0.6, 0.8, 0.01, -0.03, 0.02, m_eff, m_eff * 2 / 7, 0.0, 0.0, 0.0, 1e-6, 1e-6)
+        assert np.allclose(linear_groups(g, *args)[:3], linear(q, *args)[:3], rtol=1e-12, atol=0)
+    # two groups of 8 originals colliding in a DEM: contact time of l = 2
+    dem = DEM(base)
+    use_group_contacts(dem, D, RHO)
+    v0 = 0.05
+    dem.add_particles(np.array([[0, 0, 0], [2 * D * 1.0000001, 0, 0]]), 2 * D, RHO,
+                      vel=np.array([[v0, 0, 0], [-v0, 0, 0]]), n_orig=8)  # fmt: skip
+    P = dem.particles
+    exact = tm_contact_time(KN, 0.8, M / 2, 2.0)
+    dt = exact / 2000
+    t, t_in = 0.0, None
+    for _ in range(8000):
+        dem.advance(1, dt)
+        t += dt
+        gap = abs(P.pos[1, 0] - P.pos[0, 0]) - 2 * D
+        if gap < 0 and t_in is None:
+            t_in = t
+        if gap >= 0 and t_in is not None:
+            break
+    assert abs((t - t_in) - exact) <= 2e-3 * exact
