@@ -149,20 +149,24 @@ class ParticleExchange:
             dest[lost] = np.where(claim >= 0, claim, self.rank)
         return dest
 
-    def claim(self, pos: np.ndarray) -> np.ndarray:
-        """Owner rank of each point of every rank's `pos` (k, 3) (collective; -1 outside the mesh): this rank's rows."""
-        allpos = self.concat(np.asarray(pos, dtype=np.float64).reshape(-1, 3))
-        counts = self.comm.allgather(int(np.asarray(pos).reshape(-1, 3).shape[0]))
-        cell, status = self._locate(allpos, np.full(allpos.shape[0], -1, dtype=np.int32))
+    def _claim_all(self, pos: np.ndarray) -> np.ndarray:
+        """Owner rank of points `pos` (k, 3) that every rank holds alike (collective; -1 outside the mesh)."""
+        cell, status = self._locate(pos, np.full(pos.shape[0], -1, dtype=np.int32))
         mine = (status == FOUND) & (cell >= 0)
         mine[mine] = cell[mine] < self.ma.num_owned_cells
         big = np.iinfo(np.int64).max
         c = np.where(mine, self.rank, big).astype(np.int64)
         out = np.empty_like(c)
-        self.comm.Allreduce(c, out, op=MPI.MIN)
-        off = int(np.sum(counts[: self.rank]))
-        out = out[off : off + counts[self.rank]]
+        self.comm.Allreduce(c, out, op=MPI.MIN)  # a point on a partition boundary goes to the lowest rank
         return np.where(out == big, -1, out)
+
+    def claim(self, pos: np.ndarray) -> np.ndarray:
+        """Owner rank of each point of this rank's `pos` (k, 3) (collective, every rank asks; -1 outside the mesh)."""
+        pos = np.asarray(pos, dtype=np.float64).reshape(-1, 3)
+        counts = self.comm.allgather(pos.shape[0])
+        out = self._claim_all(self.concat(pos))
+        off = int(np.sum(counts[: self.rank]))
+        return out[off : off + counts[self.rank]]
 
     def distribute(self, particles) -> None:
         """Keep only this rank's share of a particle set every rank holds identically (start of a run).
@@ -173,23 +177,11 @@ class ParticleExchange:
         P = particles
         n = P.n_owned
         P.n_ghost = 0
-        owner = self._owners_all(P) if self.size > 1 else np.zeros(n, dtype=np.int64)
+        owner = self._claim_all(P.pos[:n]) if self.size > 1 else np.zeros(n, dtype=np.int64)
         keep = np.flatnonzero(np.where(owner < 0, 0, owner) == self.rank)
         P.keep(keep)
         P.cell[: P.n_owned] = -1
         self.set_next_gid(P)
-
-    def _owners_all(self, particles) -> np.ndarray:
-        P = particles
-        n = P.n_owned
-        cell, status = self._locate(P.pos[:n], np.full(n, -1, dtype=np.int32))
-        mine = (status == FOUND) & (cell >= 0)
-        mine[mine] = cell[mine] < self.ma.num_owned_cells
-        big = np.iinfo(np.int64).max
-        c = np.where(mine, self.rank, big).astype(np.int64)
-        out = np.empty_like(c)
-        self.comm.Allreduce(c, out, op=MPI.MIN)
-        return np.where(out == big, -1, out)
 
     def set_next_gid(self, particles) -> None:
         """Give each rank its own block of future gids above every gid in use (collective)."""

@@ -210,3 +210,22 @@ def test_2d_bed_on_2_ranks_matches_serial():
     assert np.array_equal(gid, np.arange(300))
     assert np.abs(x - ref.particles.pos[o]).max() <= 1e-9 * H
     assert np.all(x[:, 2] == 0.0) and np.all(w[:, :2] == 0.0)
+
+
+def test_particles_inserted_anywhere_go_to_their_owners():
+    """Each rank inserts particles all over the box (far outside its part too): the first step sends them home."""
+    L = 0.012
+    ex = box_exchange([0, 0, 0], [L, L, 4 * L], [3, 3, 8])
+    dem = DEM(DEMParams(gravity=0.0))
+    dem.attach_exchange(ex)
+    rng = np.random.default_rng(COMM.rank)
+    z = (np.arange(40) + 0.5) / 40 * 4 * L
+    pos = np.stack([rng.uniform(D, L - D, 40), rng.uniform(D, L - D, 40), z], axis=1)
+    gids = dem.add_particles(pos, D, RHO)
+    dem.advance(1)
+    P = dem.particles
+    n = P.n_owned
+    everyone = np.concatenate(COMM.allgather(gids))
+    held = np.concatenate(COMM.allgather(P.gid[:n].copy()))
+    assert np.array_equal(np.sort(held), np.sort(everyone)) and np.unique(held).size == 40 * COMM.size
+    assert np.all(ex.claim(P.pos[:n]) == COMM.rank)  # each particle sits in a cell of its rank
