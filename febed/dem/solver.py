@@ -183,8 +183,10 @@ class DEM:
     def attach_exchange(self, exchange, distribute: bool = False) -> None:
         """Run on several ranks through `exchange` (a `febed.parallel.ParticleExchange`; collective).
 
-        distribute: every rank holds the same particles now; keep only this rank's share.
+        distribute: every rank holds the same particles now; keep only this rank's share (ignored when the DEM
+            already runs distributed: its particles then migrate to their owners at the next step).
         """
+        distribute = distribute and self.exchange is None
         self.save_history()
         self.exchange = exchange
         if distribute:

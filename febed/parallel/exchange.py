@@ -177,6 +177,9 @@ class ParticleExchange:
         P = particles
         n = P.n_owned
         P.n_ghost = 0
+        if len(set(self.comm.allgather(n))) > 1:
+            raise ValueError("particles: distribute needs the same particles on every rank (use attach_exchange "
+                             "without distribute for particles each rank inserted itself)")  # fmt: skip
         owner = self._claim_all(P.pos[:n]) if self.size > 1 else np.zeros(n, dtype=np.int64)
         keep = np.flatnonzero(np.where(owner < 0, 0, owner) == self.rank)
         P.keep(keep)
