@@ -22,6 +22,7 @@ import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from unittest import mock
 
 from mpi4py import MPI
 
@@ -377,14 +378,73 @@ def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = No
         if gmsh is not None:
             gmsh.clear()
         raise MeshError(err)
-    if comm.rank == 0:
-        mesh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=gdim or dim)
-        gmsh.clear()
-    else:
-        import gmsh as gmsh_mod
+    with mock.patch.object(gmshio, "create_mesh", _create_mesh_rcb):  # deterministic partition (see there)
+        if comm.rank == 0:
+            mesh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=gdim or dim)
+            gmsh.clear()
+        else:
+            import gmsh as gmsh_mod
 
-        mesh, ct, ft = gmshio.model_to_mesh(gmsh_mod.model, comm, 0, gdim=gdim or dim)
+            mesh, ct, ft = gmshio.model_to_mesh(gmsh_mod.model, comm, 0, gdim=gdim or dim)
     return MeshData(mesh=mesh, facet_tags=ft, cell_tags=ct, tags=names, source=str(path))
+
+
+def rcb_owners(points: np.ndarray, nparts: int) -> np.ndarray:
+    """Recursive coordinate bisection: the part (0..nparts-1) of each point, halving the longest extent.
+
+    Deterministic (stable sorts, no random seed) and balanced to one point; parts are compact boxes.
+    """
+    owner = np.zeros(points.shape[0], dtype=np.int32)
+    stack = [(np.arange(points.shape[0]), 0, int(nparts))]
+    while stack:
+        idx, first, k = stack.pop()
+        if k == 1 or idx.size == 0:
+            owner[idx] = first
+            continue
+        pts = points[idx]
+        axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+        order = idx[np.argsort(pts[:, axis], kind="stable")]
+        k0 = k // 2
+        m = (idx.size * k0) // k
+        stack += [(order[:m], first, k0), (order[m:], first + k0, k - k0)]
+    return owner
+
+
+def _create_mesh_rcb(comm, cells, x, domain, *args, **kwargs):
+    """`dolfinx.mesh.create_mesh` with cells distributed by recursive coordinate bisection of their centroids.
+
+    DOLFINx 0.5's default parallel partitioner (PT-SCOTCH) gives a different partition from run to run
+    (message timing), so two runs on the same ranks, or a run and its restart, would differ at round-off
+    and a fluidized bed's chaos would amplify that. RCB on rank 0 (which holds every cell) is reproducible;
+    the cell's owner and, with ghosting, the owners of its neighbours are its destinations.
+    """
+    import dolfinx.graph
+    import dolfinx.mesh
+
+    owner = rcb_owners(np.asarray(x)[np.asarray(cells)].mean(axis=1), comm.size) if comm.rank == 0 else None
+    owner = comm.bcast(owner, root=0)
+
+    def partition(_comm, nparts, graph, ghosting):
+        n = graph.num_nodes
+        first = comm.exscan(n) or 0  # the graph's rows are cells first..first+n-1 of the input order
+        own = owner[first : first + n]
+        if not ghosting:
+            return dolfinx.graph.create_adjacencylist(own.astype(np.int32), np.arange(n + 1, dtype=np.int32))
+        row = np.repeat(np.arange(n), np.diff(graph.offsets))
+        nbr = owner[graph.array]
+        keep = nbr != own[row]
+        pairs = np.unique(np.stack([row[keep], nbr[keep]], axis=1), axis=0)  # (cell, ghost rank), sorted
+        count = 1 + np.bincount(pairs[:, 0], minlength=n)
+        offsets = np.concatenate([[0], np.cumsum(count)]).astype(np.int32)
+        dest = np.empty(offsets[-1], dtype=np.int32)
+        dest[offsets[:-1]] = own  # the owner first, then the ranks that ghost the cell
+        mask = np.ones(offsets[-1], dtype=bool)
+        mask[offsets[:-1]] = False
+        dest[mask] = pairs[:, 1]
+        return dolfinx.graph.create_adjacencylist(dest, offsets)
+
+    kwargs["partitioner"] = dolfinx.mesh.create_cell_partitioner(partition)
+    return dolfinx.mesh.create_mesh(comm, cells, x, domain, *args, **kwargs)
 
 
 def builtin_msh_path(name: str, level: str, cell: str, size: float, cache_dir: Path, extent=()) -> Path:

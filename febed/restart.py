@@ -83,6 +83,8 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
     arrays = {f"gas/{k}": v for k, v in gas.get_state().items()}
     arrays["gas/x"] = gas.x[:n].copy()
     dem = s.dem.get_state()
+    if run.comm.size > 1:  # the rank-count-independent layout needs every rank's history keyed by gids
+        dem.update(_keyed_history(s.dem))
     for k, v in dem.items():
         arrays[f"dem/{k}"] = np.array(v, copy=True)
     meta = {
@@ -90,7 +92,7 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
         "step": s.steps,
         "ranks": run.comm.size,
         "solver": {
-            "left_outlet": s.left_outlet,
+            "left_outlet": run.comm.allreduce(s.left_outlet),
             "n_sub": s.n_sub,
             "timers": s.timers.as_dict(),
             "last_gas": dataclasses.asdict(s.last_gas) if s.last_gas is not None else None,
@@ -99,6 +101,23 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
         "run": run.schedule(),
     }
     return arrays, meta
+
+
+def _keyed_history(dem) -> dict[str, np.ndarray]:
+    """Contact history of the DEM's pairs and walls keyed by global ids (`saved_*` entries of a DEM state)."""
+    from febed.dem.neighbours import wall_keys
+
+    if dem._saved is not None:
+        (k, v), (wk, wv) = dem._saved
+    elif dem._lists_valid and dem.pairs.n == dem.particles.n:
+        P = dem.particles
+        k, v = dem.pairs.saved_history(P.gid)
+        wk, wv = wall_keys(dem.wstart, dem.wid, P.gid, P.n, dem.whist)
+        order = np.argsort(wk)
+        wk, wv = wk[order], wv[order]
+    else:
+        k, v, wk, wv = (np.zeros(0, dtype=np.int64), np.zeros((0, 3))) * 2
+    return {"has_saved": 1, "saved_keys": k, "saved_vals": v, "saved_wkeys": wk, "saved_wvals": wv}
 
 
 def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> dict[str, np.ndarray]:
@@ -136,18 +155,11 @@ def restore(run, arrays: dict[str, np.ndarray], meta: dict) -> None:
     h = comm.allreduce(width, op=MPI.MIN)
     idx = match_nodes(arrays["gas/x"], gas.x[:n], h)
     gas.set_state({k[4:]: v[idx] for k, v in arrays.items() if k.startswith("gas/") and k != "gas/x"}, meta["time"])
-    dem = {k[4:]: v for k, v in arrays.items() if k.startswith("dem/")}
-    same_layout = meta["ranks"] == comm.size == 1
-    if not same_layout:
-        dem = _portable(dem)
-        if comm.size > 1:
-            dem = _owned_part(run, dem)
-    s.dem.set_state(dem)
-    if not same_layout:  # cell indices are rank-local: search the restored particles afresh
-        s.dem.particles.cell[: s.dem.particles.n_owned] = -1
+    reload_particles(run, arrays, meta)
     sm = meta["solver"]
     s.t, s.steps = float(meta["time"]), int(meta["step"])
-    s.left_outlet, s.n_sub = int(sm["left_outlet"]), int(sm["n_sub"])
+    s.left_outlet = int(sm["left_outlet"]) if comm.rank == 0 else 0  # the total, counted once
+    s.n_sub = int(sm["n_sub"])
     for k, v in sm["timers"].items():
         setattr(s.timers, k.removeprefix("wall_"), float(v))
     if sm["last_gas"] is not None:
@@ -155,22 +167,40 @@ def restore(run, arrays: dict[str, np.ndarray], meta: dict) -> None:
 
         s.last_gas = StepInfo(**sm["last_gas"])
     s.rng.bit_generator.state = sm["rng"]
-    s.reset_coupling()  # locate the restored particles and recompute α_p as at the end of the last step
     run.set_schedule(meta["run"])
 
 
+def reload_particles(run, arrays: dict[str, np.ndarray], meta: dict) -> None:
+    """Put a checkpoint's particles into the DEM (every rank holds the whole checkpoint; collective).
+
+    One process reading a one-process checkpoint takes the DEM state as it was, neighbour lists included.
+    Otherwise every rank takes its share of the particles in global-id order, their contact history by gid
+    pairs, and the lists are rebuilt at the next step. Running on several ranks, `CoupledRun.checkpoint`
+    passes every checkpoint it writes through here too, so that a run continued from a checkpoint and the
+    run that wrote it go on from the same particle layout.
+    """
+    s = run.solver
+    dem = {k[4:]: v for k, v in arrays.items() if k.startswith("dem/")}
+    same_layout = meta["ranks"] == run.comm.size == 1
+    if not same_layout:
+        dem = _portable(dem)
+    s.dem.set_state(dem)
+    if not same_layout:  # cell indices are rank-local: search the restored particles afresh
+        s.dem.particles.cell[: s.dem.particles.n_owned] = -1
+    if s.dem.exchange is not None:  # every rank holds every particle: keep this rank's share
+        s.dem.exchange.distribute(s.dem.particles)
+    s.reset_coupling()  # locate the particles and recompute α_p as at the end of the last step
+
+
 def _portable(dem: dict) -> dict:
-    """A DEM state without the rank-local neighbour lists (rebuilt from the keyed history)."""
+    """A DEM state in global-id order without the rank-local neighbour lists (rebuilt from the keyed history)."""
     out = {k: v for k, v in dem.items() if not k.startswith(("pl_start", "pl_nbr", "pl_hist", "w_"))}
+    order = np.argsort(out["p_gid"], kind="stable")
+    out.update({k: np.asarray(v)[order] for k, v in out.items() if k.startswith(_ROWS) and k != "p_next_gid"})
     out["lists_valid"], out["dirty"], out["forces_valid"] = 0, 1, 0
+    out["pos_ref"] = np.array(out["p_pos"], copy=True)  # lists are rebuilt at the first step
     out.pop("rank_counts", None)
     return out
-
-
-def _owned_part(run, dem: dict) -> dict:
-    """The rows of the particles whose centre lies in a cell this rank owns (MPI restart)."""
-    owned = run.solver.owned_mask(np.asarray(dem["p_pos"]))
-    return {k: (v[owned] if k.startswith(_ROWS) and k != "p_next_gid" else v) for k, v in dem.items()}
 
 
 def check_restartable(meta: dict, case) -> None:

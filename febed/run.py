@@ -268,13 +268,15 @@ class CoupledRun:
         t0 = time.perf_counter()
         arrays, meta = state if state is not None else rs.capture(self)
         meta = {**meta, "case": self.case.to_toml()}
+        gathered = rs.gather(arrays, meta, self.comm)
         try:
             path = write_checkpoint(
-                self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta, self.case.output.keep_checkpoints,
-                self.comm,
+                self.outdir / FOLDER, gathered, meta, self.case.output.keep_checkpoints, self.comm
             )  # fmt: skip
         except CheckpointError as e:
             raise RunFailure(str(e)) from None
+        if self.comm.size > 1 and state is None:  # go on from the layout a restart would have (febed.restart)
+            rs.reload_particles(self, self.comm.bcast(gathered, root=0), meta)
         self._last_checkpoint = time.perf_counter()
         self.next["checkpoint"] = s.t + self.case.output.checkpoint_interval
         self.log.info(f"checkpoint at t = {meta['time']:.6g} s (gas step {meta['step']}): {path}")

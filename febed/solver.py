@@ -37,7 +37,7 @@ from mpi4py import MPI
 import numpy as np
 
 from febed.coupling.exchange import Coupler
-from febed.coupling.locate import OUTSIDE_DOMAIN
+from febed.coupling.locate import OUTSIDE_DOMAIN, OUTSIDE_LOCAL
 from febed.coupling.mesh_arrays import extract_mesh_arrays
 from febed.gas.pressure import PressureSolveError
 
@@ -92,11 +92,6 @@ class CoupledSolver:
 
     def __init__(self, case, md, dem, gas, log=None):
         """Couple an already built DEM and gas solver on mesh `md` (see `build_solver`)."""
-        if md.comm.size > 1:
-            raise ValueError(
-                "[run] mode = 'cfd-dem' runs on one process in this version (distributed particles are not "
-                "implemented yet); run without mpirun"
-            )
         self.case = case
         self.md = md
         self.dem = dem
@@ -110,6 +105,11 @@ class CoupledSolver:
             self.ma, cp.drag, case.gas.density, case.gas.viscosity, cp.filter_passes, cp.void_fraction_floor,
             cp.pressure_gradient,
         )  # fmt: skip
+        if md.comm.size > 1:  # particles live with the mesh partition (seed 001 sec 2.5)
+            from febed.parallel.exchange import ParticleExchange
+            from febed.parallel.partition import cell_owners
+
+            dem.attach_exchange(ParticleExchange(self.ma, cell_owners(md.mesh)), distribute=True)
         self.fixed = case.particles.fixed
         self._located_now = False  # the coupler's cells and weights match the particles' current positions
         self.outlet_facets = self._outlet_facet_mask()
@@ -215,6 +215,14 @@ class CoupledSolver:
                 self._failure = (
                     f"particle {int(P.gid[k])} has a non-finite position/velocity at t = {self.t:.6g} s "
                     f"({nonfinite.size} such particle(s))"
+                )
+            beyond = missing[c.status[missing] == OUTSIDE_LOCAL]
+            if beyond.size and self._failure is None:
+                k = int(beyond[0])
+                self._failure = (
+                    f"particle {int(P.gid[k])} at {P.pos[k].tolist()} m is beyond rank {self.md.comm.rank}'s "
+                    f"ghost cells at t = {self.t:.6g} s: it moved more than a cell between two migrations "
+                    "(lower contact.skin or the gas time step)"
                 )
             if not by_outlet.all() and self._failure is None:  # raised by `check` on every rank
                 k = int(missing[~by_outlet][0])
