@@ -300,7 +300,12 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "probe_interval": Param(1e-3, "s", "simulated time between probe rows", float, lo=0.0, lo_open=True),
         "checkpoint_interval": Param(INF, "s", "simulated time between checkpoints", float, lo=0.0, lo_open=True),
         "checkpoint_wall_interval": Param(
-            INF, "s", "wall-clock time between checkpoints (either interval triggers one)", float, lo=0.0, lo_open=True
+            3600.0,
+            "s",
+            "wall-clock time between checkpoints (either interval triggers one)",
+            float,
+            lo=0.0,
+            lo_open=True,
         ),
         "probe_heights": Param(
             [], "m", "heights (along gravity) where the cross-section averaged pressure is probed", list
