@@ -16,8 +16,10 @@ Choices where the paper is silent (documented and tested):
 * How often: once per call of `update` (the coupled loop: once per gas step, every `interval` calls).
 * Crush sizes in integers: n_new - 1 = floor(d²/d_cl²) children of k = max(1, floor((d_cl/d_O)³)) originals, the
   remainder n - (n_new - 1) k >= 1 in the last child (eqs 41-43); a single original never crushes.
-* Where children go: centres uniformly in the parent's sphere (disk in 2D), best of `tries` draws per child;
-  the crush is deferred if any child would overlap a sibling, another group or a wall by more than
+* Where children go: centres in the parent's sphere (disk in 2D): best of `tries` random draws per child
+  (largest gap to the siblings placed), then the siblings are relaxed apart with their centres kept in the
+  parent's sphere (8 originals out of a group of 8 always fit at a 5 % tolerance); after 4 failed attempts the
+  crush is deferred if any child would overlap a sibling, another group or a wall by more than
   `overlap_tolerance` of the smaller diameter.
 * Merging: touching groups (overlap > 0) meeting eq 44 (|v_i - v_j| < 0.01 max(|v_i|, |v_j|)), with
   n_i + n_j <= `max_group` and a merged diameter not above either group's d_cl (so a merge is never undone by the
@@ -123,6 +125,7 @@ class GroupDynamics:
         self.rng = np.random.default_rng(seed)
         self.calls = 0
         self.total = EventStats()
+        self._interval = EventStats()
 
     # ------------------------------------------------------------------ d_cl (eqs 32-39)
     def contact_power(self, dem) -> np.ndarray:
@@ -205,7 +208,26 @@ class GroupDynamics:
             return EventStats(groups=P.n_owned, originals=int(P.n_orig[: P.n_owned].sum()))
         stats = self.apply(dem, self.equivalent_diameter(dem, eps_at_p, u_at_p, f_drag))
         self.total.add(stats)
+        self._interval.add(stats)
         return stats
+
+    def interval_stats(self) -> EventStats:
+        """Events accumulated since the previous call (per output interval, seed 000 Figs 8-9), then reset."""
+        out = self._interval
+        self._interval = EventStats(groups=out.groups, originals=out.originals)
+        return out
+
+    def state_dict(self) -> dict:
+        """Restartable state (random generator, call count, totals) as plain Python values for a checkpoint."""
+        return {"rng": self.rng.bit_generator.state, "calls": self.calls, "total": vars(self.total).copy(),
+                "interval": vars(self._interval).copy()}  # fmt: skip
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore the state saved by `state_dict` (the group sizes themselves live in `Particles.n_orig`)."""
+        self.rng.bit_generator.state = state["rng"]
+        self.calls = int(state["calls"])
+        self.total = EventStats(**state["total"])
+        self._interval = EventStats(**state["interval"])
 
     @staticmethod
     def _energy(dem) -> float:

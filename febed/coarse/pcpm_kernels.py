@@ -141,6 +141,87 @@ def _conflicts(x, y, z, ext, ev, n_ev):
 
 
 @njit(cache=True)
+def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, lo, h, dims, head, nxt, rmax, plane_p,
+                    plane_n, facets, nv, kids):  # fmt: skip
+    """Centres of the nk children of group i in kids[:nk] (x, y, z, r); False if an overlap would exceed tol."""
+    for c in range(nk):  # the larger of remainder / full children first
+        first_rem = r_rem >= r_full
+        is_rem = (c == 0) if first_rem else (c == nk - 1)
+        rc = r_rem if is_rem else r_full
+        best = np.inf
+        bx = by = bz = 0.0
+        for _ in range(tries):
+            while True:
+                qx = 2.0 * np.random.random() - 1.0  # noqa: NPY002
+                qy = 2.0 * np.random.random() - 1.0  # noqa: NPY002
+                qz = 0.0 if dim2 else 2.0 * np.random.random() - 1.0  # noqa: NPY002
+                if qx * qx + qy * qy + qz * qz <= 1.0:
+                    break
+            x = pos[i, 0] + R * qx
+            y = pos[i, 1] + R * qy
+            z = pos[i, 2] + R * qz
+            s = _overlap_static(x, y, z, rc, pos, diam, i, i, lo, h, dims, head, nxt, rmax)
+            s = max(s, _overlap_walls(x, y, z, rc, plane_p, plane_n, facets, nv))
+            sib = -np.inf  # relative overlap with the closest sibling: negative = gap, maximised
+            for b in range(c):
+                dist = math.sqrt((kids[b, 0] - x) ** 2 + (kids[b, 1] - y) ** 2 + (kids[b, 2] - z) ** 2)
+                sib = max(sib, (rc + kids[b, 3] - dist) / (2.0 * min(rc, kids[b, 3])))
+            s = max(s, sib)
+            if s < best:
+                best = s
+                bx, by, bz = x, y, z
+        kids[c, 0] = bx
+        kids[c, 1] = by
+        kids[c, 2] = bz
+        kids[c, 3] = rc
+    # relax the siblings apart (pairwise half-overlap pushes, centres kept in the parent's sphere), then check all
+    cx, cy, cz = pos[i, 0], pos[i, 1], pos[i, 2]
+    for _ in range(200):
+        worst = 0.0
+        for a in range(nk):
+            for b in range(a + 1, nk):
+                dx = kids[b, 0] - kids[a, 0]
+                dy = kids[b, 1] - kids[a, 1]
+                dz = kids[b, 2] - kids[a, 2]
+                dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+                ov = kids[a, 3] + kids[b, 3] - dist
+                if ov <= 0.0:
+                    continue
+                worst = max(worst, ov / (2.0 * min(kids[a, 3], kids[b, 3])))
+                if dist == 0.0:
+                    dx, dist = 1.0, 1.0
+                f = 0.5 * ov / dist
+                kids[a, 0] -= f * dx
+                kids[a, 1] -= f * dy
+                kids[b, 0] += f * dx
+                kids[b, 1] += f * dy
+                if not dim2:
+                    kids[a, 2] -= f * dz
+                    kids[b, 2] += f * dz
+        for a in range(nk):
+            dx = kids[a, 0] - cx
+            dy = kids[a, 1] - cy
+            dz = kids[a, 2] - cz
+            dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if dist > R:
+                kids[a, 0] = cx + dx * R / dist
+                kids[a, 1] = cy + dy * R / dist
+                kids[a, 2] = cz + dz * R / dist
+        if worst <= 0.5 * tol:
+            break
+    for c in range(nk):
+        x, y, z, rc = kids[c, 0], kids[c, 1], kids[c, 2], kids[c, 3]
+        s = _overlap_static(x, y, z, rc, pos, diam, i, i, lo, h, dims, head, nxt, rmax)
+        s = max(s, _overlap_walls(x, y, z, rc, plane_p, plane_n, facets, nv))
+        for b in range(c):
+            dist = math.sqrt((kids[b, 0] - x) ** 2 + (kids[b, 1] - y) ** 2 + (kids[b, 2] - z) ** 2)
+            s = max(s, (rc + kids[b, 3] - dist) / (2.0 * min(rc, kids[b, 3])))
+        if s > tol:
+            return False
+    return True
+
+
+@njit(cache=True)
 def group_events(
     pos, vel, omega, diam, n_orig, n, d_orig, dim2, d_cl, do_crush, do_merge, n_max, merge_tol, tol, tries, seed,
     plane_p, plane_n, facets, nv, removed, new_pos, new_vel, new_omega, new_n, counts,
@@ -150,7 +231,8 @@ def group_events(
     Crushing (eqs 40-43): groups with d > d_cl split into `crush_sizes` children with the parent's velocity and
     spin, centres drawn uniformly in the parent's sphere (disk in 2D); for each child the best of `tries` draws
     (smallest overlap with the other groups and the walls, and the largest gap to its siblings) is kept, so the
-    children spread through the parent's volume; the crush is deferred if an
+    children spread through the parent's volume, then the siblings are relaxed apart (pairwise pushes, centres
+    kept in the parent's sphere); after 4 failed attempts the crush is deferred if an
     overlap would exceed `tol` (fraction of the smaller diameter). Merging (eqs 44-46): touching groups with
     |v_i - v_j| < merge_tol max(|v_i|, |v_j|), n_i + n_j <= n_max and a merged diameter not above either d_cl
     become one group at their centre of mass with the count-weighted (= mass-weighted) velocity and spin, unless it
@@ -189,40 +271,12 @@ def group_events(
         if _conflicts(pos[i, 0], pos[i, 1], pos[i, 2], ext, ev, n_ev):
             counts[5] += 1
             continue
-        ok = True
-        for c in range(nk):  # the larger of remainder / full children first
-            first_rem = r_rem >= r_full
-            is_rem = (c == 0) if first_rem else (c == nk - 1)
-            rc = r_rem if is_rem else r_full
-            best = np.inf
-            bx = by = bz = 0.0
-            for _ in range(tries):
-                while True:
-                    qx = 2.0 * np.random.random() - 1.0  # noqa: NPY002
-                    qy = 2.0 * np.random.random() - 1.0  # noqa: NPY002
-                    qz = 0.0 if dim2 else 2.0 * np.random.random() - 1.0  # noqa: NPY002
-                    if qx * qx + qy * qy + qz * qz <= 1.0:
-                        break
-                x = pos[i, 0] + R * qx
-                y = pos[i, 1] + R * qy
-                z = pos[i, 2] + R * qz
-                s = _overlap_static(x, y, z, rc, pos, diam, i, i, lo, h, dims, head, nxt, rmax)
-                s = max(s, _overlap_walls(x, y, z, rc, plane_p, plane_n, facets, nv))
-                sib = -np.inf  # relative overlap with the closest sibling: negative = gap, maximised
-                for b in range(c):
-                    dist = math.sqrt((kids[b, 0] - x) ** 2 + (kids[b, 1] - y) ** 2 + (kids[b, 2] - z) ** 2)
-                    sib = max(sib, (rc + kids[b, 3] - dist) / (2.0 * min(rc, kids[b, 3])))
-                s = max(s, sib)
-                if s < best:
-                    best = s
-                    bx, by, bz = x, y, z
-            if best > tol:
-                ok = False
+        ok = False
+        for _attempt in range(4):  # a few fresh attempts before deferring the crush
+            ok = _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, lo, h, dims, head, nxt, rmax,
+                                 plane_p, plane_n, facets, nv, kids)  # fmt: skip
+            if ok:
                 break
-            kids[c, 0] = bx
-            kids[c, 1] = by
-            kids[c, 2] = bz
-            kids[c, 3] = rc
         if not ok:
             counts[3] += 1
             continue

@@ -168,3 +168,26 @@ def test_children_and_merged_groups_respect_the_overlap_tolerance(tol):
     new = np.array([k for k in range(n) if P.gid[k] not in old])
     assert _max_rel_overlap(P.pos[:n], 0.5 * P.diameter[:n], new) <= tol + 1e-12
     assert np.all(dem.walls.distance(P.pos[new]) >= 0.5 * P.diameter[new] * (1 - 2 * tol) - 1e-15)
+
+
+def test_interval_stats_and_restart_state():
+    def bed():
+        dem = DEM(DEMParams(gravity=0.0))
+        pos = np.array([[0.0, 0, 0], [0.01, 0, 0], [0.02, 0, 0]])
+        dem.add_particles(pos, 2 * DO, RHO, vel=np.tile([0.0, 0.0, 5e-4], (3, 1)), n_orig=8)
+        return dem
+
+    args = (np.full(3, 0.7), np.tile([0.0, 0.0, 1.0], (3, 1)))
+    gd = GroupDynamics(DO, RHO, 1.2, 1.8e-5, 0.45, u_mf=0.3, contact_power=False, seed=5)
+    dem = bed()
+    f = np.tile([0.0, 0.0, 3000.0], (3, 1)) * dem.particles.mass[:3, None]
+    state = gd.state_dict()
+    s1 = gd.update(dem, *args, f)
+    iv = gd.interval_stats()
+    assert iv.crushed == s1.crushed == 3 and gd.interval_stats().crushed == 0 and gd.total.crushed == 3
+    # restart: the same state gives the same children
+    gd2 = GroupDynamics(DO, RHO, 1.2, 1.8e-5, 0.45, u_mf=0.3, contact_power=False, seed=99)
+    gd2.load_state_dict(state)
+    dem2 = bed()
+    gd2.update(dem2, *args, f)
+    assert np.array_equal(dem.particles.pos, dem2.particles.pos)
