@@ -3,7 +3,8 @@
 Dynamic particle-groups that crush and merge (PCPM, seed 000 sec 2.3) and the one-way driver that moves
 particles in a prescribed gas (seed 003 sec 4-5).
 
-Public entry points: `tm_dem_params`, `tm_contact_params`, `tm_parcels`, `tm_contact_time` (febed.coarse.tm);
+Public entry points: `tm_dem_params`, `tm_contact_params`, `tm_parcels`, `tm_contact_time`,
+`use_group_contacts` (febed.coarse.tm);
 `scg_density` (febed.coarse.scg); `run_oneway`, `OneWayParams` (febed.coarse.oneway); `GroupDynamics`,
 `equivalent_diameter` (febed.coarse.pcpm).
 """
