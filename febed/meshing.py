@@ -389,12 +389,13 @@ def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = No
     return MeshData(mesh=mesh, facet_tags=ft, cell_tags=ct, tags=names, source=str(path))
 
 
-def rcb_owners(points: np.ndarray, nparts: int) -> np.ndarray:
+def rcb_owners(points: np.ndarray, nparts: int, axes: tuple[int, ...] | None = None) -> np.ndarray:
     """Recursive coordinate bisection: the part (0..nparts-1) of each point, halving the longest extent.
 
-    Deterministic (stable sorts, no random seed) and balanced to one point; parts are compact boxes.
+    Only `axes` are cut (default all). Deterministic (stable sorts, no random seed), balanced to one point.
     """
     owner = np.zeros(points.shape[0], dtype=np.int32)
+    axes = tuple(range(points.shape[1])) if axes is None else tuple(axes)
     stack = [(np.arange(points.shape[0]), 0, int(nparts))]
     while stack:
         idx, first, k = stack.pop()
@@ -402,7 +403,8 @@ def rcb_owners(points: np.ndarray, nparts: int) -> np.ndarray:
             owner[idx] = first
             continue
         pts = points[idx]
-        axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+        extent = pts.max(axis=0) - pts.min(axis=0)
+        axis = axes[int(np.argmax(extent[list(axes)]))]
         order = idx[np.argsort(pts[:, axis], kind="stable")]
         k0 = k // 2
         m = (idx.size * k0) // k
@@ -413,6 +415,9 @@ def rcb_owners(points: np.ndarray, nparts: int) -> np.ndarray:
 def _create_mesh_rcb(comm, cells, x, domain, *args, **kwargs):
     """`dolfinx.mesh.create_mesh` with cells distributed by recursive coordinate bisection of their centroids.
 
+    Only the horizontal directions are cut (febed's gravity is along the last axis), so a bed resting at the
+    bottom of a tall mesh is shared between the ranks instead of falling to the lowest one.
+
     DOLFINx 0.5's default parallel partitioner (PT-SCOTCH) gives a different partition from run to run
     (message timing), so two runs on the same ranks, or a run and its restart, would differ at round-off
     and a fluidized bed's chaos would amplify that. RCB on rank 0 (which holds every cell) is reproducible;
@@ -421,7 +426,12 @@ def _create_mesh_rcb(comm, cells, x, domain, *args, **kwargs):
     import dolfinx.graph
     import dolfinx.mesh
 
-    owner = rcb_owners(np.asarray(x)[np.asarray(cells)].mean(axis=1), comm.size) if comm.rank == 0 else None
+    if comm.rank == 0:  # cut across the directions normal to gravity (the last axis): a bed sits at the bottom
+        centroids = np.asarray(x)[np.asarray(cells)].mean(axis=1)
+        gdim = np.asarray(x).shape[1]
+        owner = rcb_owners(centroids, comm.size, axes=tuple(range(gdim - 1)) if gdim > 1 else None)
+    else:
+        owner = None
     owner = comm.bcast(owner, root=0)
 
     def partition(_comm, nparts, graph, ghosting):

@@ -83,8 +83,6 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
     arrays = {f"gas/{k}": v for k, v in gas.get_state().items()}
     arrays["gas/x"] = gas.x[:n].copy()
     dem = s.dem.get_state()
-    if run.comm.size > 1:  # the rank-count-independent layout needs every rank's history keyed by gids
-        dem.update(_keyed_history(s.dem))
     for k, v in dem.items():
         arrays[f"dem/{k}"] = np.array(v, copy=True)
     meta = {
@@ -103,23 +101,6 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, meta
 
 
-def _keyed_history(dem) -> dict[str, np.ndarray]:
-    """Contact history of the DEM's pairs and walls keyed by global ids (`saved_*` entries of a DEM state)."""
-    from febed.dem.neighbours import wall_keys
-
-    if dem._saved is not None:
-        (k, v), (wk, wv) = dem._saved
-    elif dem._lists_valid and dem.pairs.n == dem.particles.n:
-        P = dem.particles
-        k, v = dem.pairs.saved_history(P.gid)
-        wk, wv = wall_keys(dem.wstart, dem.wid, P.gid, P.n, dem.whist)
-        order = np.argsort(wk)
-        wk, wv = wk[order], wv[order]
-    else:
-        k, v, wk, wv = (np.zeros(0, dtype=np.int64), np.zeros((0, 3))) * 2
-    return {"has_saved": 1, "saved_keys": k, "saved_vals": v, "saved_wkeys": wk, "saved_wvals": wv}
-
-
 def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> dict[str, np.ndarray]:
     """The rank-count-independent checkpoint arrays on rank 0 (one rank: the state unchanged)."""
     if comm.size == 1:
@@ -129,7 +110,7 @@ def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> di
     out = gather_rows(rows, comm)
     scalars = ("time", "steps", "dt", "pl_skin", "pl_builds", "max_overlap")
     counts = comm.gather(int(arrays["dem/p_pos"].shape[0]), root=0)
-    next_gid = comm.allreduce(int(arrays["dem/p_next_gid"]), op=MPI.MAX)
+    top = comm.allreduce(int(arrays["dem/p_gid"].max(initial=-1)), op=MPI.MAX)
     if comm.rank == 0:
         for k in _HISTORY[::2]:  # cross-partition pairs are held by both ranks: keep each key once
             key, val = f"dem/{k}", f"dem/{k.replace('keys', 'vals')}"
@@ -137,7 +118,7 @@ def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> di
                 out[key], first = np.unique(out[key], return_index=True)
                 out[val] = out[val][first]
         out.update({f"dem/{k}": arrays[f"dem/{k}"] for k in scalars if f"dem/{k}" in arrays})
-        out["dem/p_next_gid"] = np.array(next_gid)
+        out["dem/p_next_gid"] = np.array(top + 1)  # each rank gets its own block above it on restart
         out["dem/has_saved"] = np.array(int("dem/saved_keys" in out))
         out["dem/lists_valid"] = np.array(0)
         out["dem/dirty"] = np.array(1)

@@ -73,8 +73,9 @@ def test_two_ranks_follow_the_serial_bed(serial, tmp_path):
     a, b = probes(serial), probes(out)
     assert len(a["time"]) == len(b["time"]) == 11 and a["step"][-1] == 50
     for k in a:
-        if k not in SKIP:
-            np.testing.assert_allclose(b[k], a[k], rtol=1e-8, atol=1e-8 * np.max(np.abs(a[k])), err_msg=k)
+        if k not in SKIP:  # pressures near the outlet are ~0: measure them against the bed's pressure
+            scale = np.max(np.abs(a["p_bottom"] if k.startswith("p_") else a[k]))
+            np.testing.assert_allclose(b[k], a[k], rtol=1e-8, atol=1e-8 * scale, err_msg=k)
     (pa, _), (pb, _) = by_gid(serial), by_gid(out)
     assert np.array_equal(pa["gid"], pb["gid"])  # every particle once, none lost or duplicated
     np.testing.assert_allclose(pb["pos"], pa["pos"], rtol=0, atol=1e-9 * 0.5)  # 1e-9 of the bed height
