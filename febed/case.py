@@ -316,6 +316,9 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
     for tag, b in case.boundary.items():
         if b.type == "inlet" and b.velocity is None:
             problems.append(f"[gas.boundary.{tag}] type = 'inlet' needs velocity (superficial, m/s)")
+    from febed.coarse.setup import check_case
+
+    problems += check_case(case)
     out = case.output
     if out.keep_checkpoints < 1:
         problems.append("[output] keep_checkpoints must be at least 1")

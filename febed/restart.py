@@ -95,6 +95,7 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
             "timers": s.timers.as_dict(),
             "last_gas": dataclasses.asdict(s.last_gas) if s.last_gas is not None else None,
             "rng": s.rng.bit_generator.state,
+            "groups": s.groups.state_dict() if s.groups is not None else None,
         },
         "run": run.schedule(),
     }
@@ -148,6 +149,8 @@ def restore(run, arrays: dict[str, np.ndarray], meta: dict) -> None:
 
         s.last_gas = StepInfo(**sm["last_gas"])
     s.rng.bit_generator.state = sm["rng"]
+    if s.groups is not None and sm.get("groups"):
+        s.groups.load_state_dict(sm["groups"])
     run.set_schedule(meta["run"])
 
 

@@ -138,6 +138,8 @@ class CoupledRun:
             "cfl", "poisson_iterations", "gas_inflow", "gas_mass_imbalance", "clipped_nodes",
             "wall_dem", "wall_coupling", "wall_gas", "wall_output",
         ]  # fmt: skip
+        if s.groups is not None:  # PCPM: cumulative event counts (difference them for per-interval rates)
+            self.columns += ["groups", "originals", "crushed", "merged", "events_deferred", "event_energy"]
         o = case.output
         self.next = {"probe": 0.0, "field": 0.0, "particle": 0.0, "checkpoint": o.checkpoint_interval}
         self.last = {"probe": None, "field": None, "particle": None}  # time of the last one written
@@ -222,6 +224,14 @@ class CoupledRun:
             **s.timers.as_dict(),
         }
         vals.update({f"p_{k}": v for k, v in sec.items()})
+        if s.groups is not None:
+            tot = s.groups.total
+            own = [n, int(P.n_orig[:n].sum()), tot.crushed, tot.merged, tot.crush_deferred + tot.merge_deferred]
+            counts = self.comm.allreduce(np.array(own, dtype=np.int64))
+            vals.update(
+                zip(("groups", "originals", "crushed", "merged", "events_deferred"), counts.tolist(), strict=True)
+            )
+            vals["event_energy"] = self.comm.allreduce(tot.energy_injected)
         return vals
 
     # ------------------------------------------------------------------------------------------ output
@@ -245,6 +255,7 @@ class CoupledRun:
         if due["particle"]:
             self.particles.write(s.t, s.dem.particles)
             self._log_balance()
+            self._log_groups()
         for kind in kinds:
             if due[kind]:
                 self.last[kind] = s.t
@@ -252,6 +263,18 @@ class CoupledRun:
         if due["probe"] and not force:
             self.good = rs.capture(self)
         s.timers.output += time.perf_counter() - t0
+
+    def _log_groups(self) -> None:
+        """PCPM: groups and crush/merge events since the last particle output (seed 000 Figs 8-9)."""
+        if self.solver.groups is None:
+            return
+        e = self.solver.groups.interval_stats()
+        c = self.comm.allreduce(np.array([e.groups, e.crushed, e.children, e.merged], dtype=np.int64))
+        energy = self.comm.allreduce(e.energy_injected)
+        self.log.info(
+            f"groups: {c[0]} ({c[1]} crushed into {c[2]}, {c[3]} merges since the last output; "
+            f"energy injected {energy:.3g} J)"
+        )
 
     def _log_balance(self) -> None:
         if self.comm.size == 1:

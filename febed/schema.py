@@ -121,9 +121,10 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "mode": Param(
             "cfd-dem",
             "-",
-            "what is solved: coupled gas and particles, particles only, or gas only with a given void fraction",
+            "what is solved: coupled gas and particles, particles only, gas only with a given void fraction, or "
+            "particles in a prescribed gas ([prescribed_gas], one-way)",
             str,
-            choices=("cfd-dem", "dem", "gas"),
+            choices=("cfd-dem", "dem", "gas", "one-way"),
         ),
         "end_time": Param(1.0, "s", "simulated time at which the run stops", float, lo=0.0, lo_open=True),
         "gravity": Param(9.81, "m/s^2", "gravity magnitude, along -z in 3D and -y in 2D", float, lo=0.0),
@@ -291,7 +292,66 @@ SCHEMA: dict[str, dict[str, Param]] = {
             str,
             choices=("none", "tm", "scg", "pcpm"),
         ),
-        "ratio": Param(1.0, "", "coarse-grain ratio l = d_parcel / d_original", float, lo=1.0),
+        "ratio": Param(
+            1.0,
+            "",
+            "coarse-grain ratio l = d_parcel / d_original (tm, pcpm: l^3 whole originals per parcel; scg: any l)",
+            float,
+            lo=1.0,
+        ),
+        "tm_damping": Param(
+            "force",
+            "-",
+            "tm dashpot: seed 000 eq 24 literally (force: l^3 times the originals' force) or keep the restitution",
+            str,
+            choices=("force", "restitution"),
+        ),
+        "eps_mf": Param(0.45, "", "pcpm: void fraction at minimum fluidization", float, lo=0.0, lo_open=True, hi=1.0),
+        "u_mf": Param(0.0, "m/s", "pcpm: minimum fluidization velocity; 0 = Wen-Yu correlation", float, lo=0.0),
+        "eps_max": Param(
+            0.9997, "", "pcpm: void fraction at which d_cl = d_original (seed 000 eq 36)", float, lo=0.0, hi=1.0
+        ),
+        "max_group": Param(27, "originals", "pcpm: largest group after merging", int, lo=1),
+        "overlap_tolerance": Param(
+            0.05,
+            "",
+            "pcpm: largest overlap a crush or merge may create, fraction of the pair's smaller diameter",
+            float,
+            lo=0.0,
+            hi=0.5,
+        ),
+        "merge_tolerance": Param(
+            0.01, "", "pcpm: groups merge if |v_i - v_j| < this x max(|v_i|, |v_j|) (seed 000 eq 44)", float, lo=0.0
+        ),
+        "interval": Param(1, "gas steps", "pcpm: crush/merge criteria evaluated every this many gas steps", int, lo=1),
+        "contact_power": Param(True, "-", "pcpm: include the contact power E_cc (seed 000 eq 38) in d_cl", bool),
+        "placement_tries": Param(32, "-", "pcpm: random draws per crushed child's position", int, lo=1),
+    },
+    "prescribed_gas": {
+        "flow": Param(
+            "uniform", "-", "one-way: the prescribed gas velocity field", str, choices=("uniform", "vortex", "function")
+        ),
+        "velocity": Param([1.0, 0.0, 0.0], "m/s", "uniform: the gas velocity", list, length=3),
+        "rpm": Param(0.0, "rev/min", "vortex: angular speed of the forced vortex", float),
+        "inflow_ratio": Param(0.0, "", "vortex: radial inflow speed as a fraction of the vortex speed", float, lo=0.0),
+        "center": Param([0.0, 0.0], "m", "vortex: position (x, y) of the vertical axis", list, length=2),
+        "outlet_radius": Param(0.0, "m", "vortex: radius of the axial outlet core flow", float, lo=0.0),
+        "outlet_velocity": Param(0.0, "m/s", "vortex: axial gas velocity inside outlet_radius", float),
+        "function": Param("", "-", "function: 'module:function' returning u (N, 3) from x (N, 3) and t", str),
+        "window": Param(0.0, "s", "drag held over windows of this length; 0 = tau_min / drag_factor", float, lo=0.0),
+        "drag_factor": Param(
+            20.0, "", "automatic drag window = shortest particle relaxation time / this", float, lo=0.0, lo_open=True
+        ),  # fmt: skip
+        "integration": Param(
+            "exponential",
+            "-",
+            "drag over a window: exact exponential relaxation or explicit",
+            str,
+            choices=("exponential", "explicit"),
+        ),  # fmt: skip
+        "output_interval": Param(
+            0.01, "s", "simulated time between rows of particles.csv", float, lo=0.0, lo_open=True
+        ),  # fmt: skip
     },
     "output": {
         "directory": Param("", "-", "output folder; default ./runs/<case name>", str),

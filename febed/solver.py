@@ -36,6 +36,7 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed.coarse import setup as coarse
 from febed.coupling.exchange import Coupler
 from febed.coupling.locate import OUTSIDE_DOMAIN, OUTSIDE_LOCAL
 from febed.coupling.mesh_arrays import extract_mesh_arrays
@@ -121,6 +122,7 @@ class CoupledSolver:
         self.timers = Timers()
         self.last_gas = None
         self.limits = Limits.from_case(case)
+        self.groups = coarse.group_dynamics(case)  # PCPM particle-groups, or None
         self.rng = np.random.default_rng(case.run.seed)  # checkpointed with the run (coarse-grain events)
         self._failure = None  # first problem met inside a step, raised collectively by `check`
         self._n_nodes = md.comm.allreduce(self.ma.num_owned_dofs)
@@ -165,6 +167,8 @@ class CoupledSolver:
         self.timers.gas += t3 - t2
         self.t += dt
         self.steps += 1
+        if self.groups is not None:
+            self.group_events()
 
     def advance_particles(self, dt: float, n_sub: int) -> None:
         """`n_sub` DEM steps of dt/n_sub with drag and pressure-gradient forces from the frozen gas.
@@ -196,6 +200,17 @@ class CoupledSolver:
             t0 = time.perf_counter()
             self.timers.dem += t0 - t1
             done += steps
+        self.timers.coupling += time.perf_counter() - t0
+
+    def group_events(self) -> None:
+        """PCPM: crush and merge the particle-groups in the flow of the new gas step (seed 000 sec 2.3)."""
+        t0 = time.perf_counter()
+        f_d = u_p = eps_p = None
+        if self.groups.calls % self.groups.interval == 0:  # the criteria are evaluated at this call
+            _, f_d, _ = self.fluid_state(relocate=True)
+            u_p, eps_p, _ = self.coupler.gas_at_particles(self.gas.u, self.gas.eps, self.gas.grad_p)
+        self.groups.update(self.dem, eps_p, u_p, f_d)
+        self._located_now = False  # groups were added and removed
         self.timers.coupling += time.perf_counter() - t0
 
     def locate_particles(self) -> None:

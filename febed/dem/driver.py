@@ -25,6 +25,7 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed.coarse import setup as coarse
 from febed.dem.insertion import count_from_mass, lattice_positions, load_bed, random_positions, save_bed, settle
 from febed.dem.particles import Particles
 from febed.dem.solver import DEM
@@ -78,13 +79,20 @@ def _region(case, md, dim: int) -> tuple[np.ndarray, np.ndarray]:
     return rlo, rhi
 
 
-def insert_in_mesh(case, md, walls: Walls, dim: int) -> np.ndarray:
-    """Centres of the case's particles, in its region, inside the mesh and clear of the walls."""
+def original_count(case) -> int:
+    """Number of original particles of the case: `[particles] count`, or `bed_mass` in originals."""
     p = case.particles
-    d = p.diameter
-    count = p.count if p.count > 0 else (count_from_mass(p.bed_mass, d, p.density) if p.bed_mass > 0 else 0)
+    count = p.count if p.count > 0 else (count_from_mass(p.bed_mass, p.diameter, p.density) if p.bed_mass > 0 else 0)
     if count <= 0:
         raise ValueError("[particles] give count > 0 or bed_mass > 0 (or an existing bed_file)")
+    return count
+
+
+def insert_in_mesh(case, md, walls: Walls, dim: int, count: int | None = None, d: float | None = None) -> np.ndarray:
+    """Centres of `count` particles of diameter d (default: the case's), in its region, inside the mesh, off walls."""
+    p = case.particles
+    d = p.diameter if d is None else d
+    count = original_count(case) if count is None else count
     lo, hi = _region(case, md, dim)
     factor = 1.0
     for _ in range(8):
@@ -129,6 +137,16 @@ def particle_exchange(md, comm):
     return ParticleExchange.from_mesh(md.mesh)
 
 
+def dem_from_case(case, walls: Walls, dim: int, particles: Particles) -> DEM:
+    """`DEM.from_case` with the case's coarse-grain contact law (TM parcels, PCPM group scaling)."""
+    dem = DEM.from_case(case, walls=walls, dim=dim, particles=particles)
+    params = coarse.dem_params(case, dem.params)
+    if params is not dem.params:
+        dem = DEM(params, particles=particles, walls=walls)
+    coarse.configure_dem(case, dem)
+    return dem
+
+
 def build_dem(case, md, log, exchange=None) -> DEM:
     """The DEM of a case: walls from the mesh and the bed loaded, or inserted (and packed/saved if asked).
 
@@ -142,18 +160,20 @@ def build_dem(case, md, log, exchange=None) -> DEM:
     if bed_path is not None and Path(bed_path).exists():
         parts, _ = load_bed(bed_path)
         log.info(f"loaded packed bed {bed_path}: {parts.n_owned} particles")
-        dem = DEM.from_case(case, walls=walls, dim=dim, particles=parts)
+        dem = dem_from_case(case, walls, dim, parts)
         if exchange is not None:
             dem.attach_exchange(exchange, distribute=True)
         return dem
     if bed_path is not None and not p.pack_if_missing:
         raise ValueError(f"[particles] bed_file {bed_path} does not exist and pack_if_missing = false")
-    dem = DEM.from_case(case, walls=walls, dim=dim, particles=Particles())
-    pos = insert_in_mesh(case, md, walls, dim)
-    dem.add_particles(pos, p.diameter, p.density)
+    dem = dem_from_case(case, walls, dim, Particles())
+    spec = coarse.parcels(case, original_count(case))
+    pos = insert_in_mesh(case, md, walls, dim, spec.count, spec.diameter)
+    dem.add_particles(pos, spec.diameter, spec.density, n_orig=spec.n_orig)
     if exchange is not None:
         dem.attach_exchange(exchange, distribute=True)
-    log.info(f"inserted {pos.shape[0]} particles ({p.insertion}); DEM step {dem.dt:.3e} s")
+    cg = f", {case.coarse_grain.model} l = {case.coarse_grain.ratio:g}" if case.coarse_grain.model != "none" else ""
+    log.info(f"inserted {pos.shape[0]} particles of {spec.diameter:g} m ({p.insertion}{cg}); DEM step {dem.dt:.3e} s")
     if bed_path is not None:
         log.info(f"packing the bed until the mean kinetic energy < {p.settle_energy:g} J ...")
         t = settle(dem, p.settle_energy, max_time=p.settle_max_time, log=log)
@@ -164,7 +184,7 @@ def build_dem(case, md, log, exchange=None) -> DEM:
         log.info(f"packed in {t:.3f} s of simulated time; saved {bed_path}")
         parts = dem.particles
         parts.n_ghost = 0
-        dem = DEM.from_case(case, walls=walls, dim=dim, particles=parts)
+        dem = dem_from_case(case, walls, dim, parts)
         if exchange is not None:
             dem.attach_exchange(exchange)
     return dem

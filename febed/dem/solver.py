@@ -32,7 +32,7 @@ from febed.dem.neighbours import (
     wall_keys,
 )
 from febed.dem.particles import Particles
-from febed.dem.walls import Walls, build_wall_pairs
+from febed.dem.walls import Walls, build_wall_pairs, wall_overlap_squares
 
 
 @dataclass
@@ -559,9 +559,10 @@ class DEM:
         delta = r[i] + r[j] - np.linalg.norm(P.pos[j] - P.pos[i], axis=1)
         share = np.where(j < n, 1.0, 0.5)  # a contact with a ghost is counted half here, half by its owner
         e = 0.5 * self.pp.kn * float(np.sum(share * np.maximum(delta, 0.0) ** 2))
-        if self.walls.count:
-            dw = self.walls.distance(P.pos[:n])
-            e += 0.5 * self.pw.kn * float(np.sum(np.maximum(r[:n] - dw, 0.0) ** 2))
+        W = self.walls
+        if W.count:  # the nearest wall among each particle's candidates (the wall lists are current)
+            sq = wall_overlap_squares(P.pos, r, n, self.wstart, self.wid, W.plane_p, W.plane_n, W.facets, W.nv)
+            e += 0.5 * self.pw.kn * sq
         return self.global_sum(e)
 
     def potential_energy(self) -> float:

@@ -289,11 +289,34 @@ class Walls:
     def distance(self, pos: np.ndarray) -> np.ndarray:
         """Distance (m) of each point (k, 3) to the nearest wall (planes signed), by brute force (for checks)."""
         out = np.full(pos.shape[0], np.inf)
-        for i in range(pos.shape[0]):
-            for w in range(self.count):
-                d = wall_distance(pos[i, 0], pos[i, 1], pos[i, 2], w, self.plane_p, self.plane_n, self.facets, self.nv)
-                out[i] = min(out[i], d)
+        _nearest_walls(np.ascontiguousarray(pos, dtype=np.float64), self.count, self.plane_p, self.plane_n,
+                       self.facets, self.nv, out)  # fmt: skip
         return out
+
+
+@njit(cache=True)
+def _nearest_walls(pos, count, plane_p, plane_n, facets, nv, out):
+    """out[i] = distance of point i to the nearest of all `count` walls (brute force)."""
+    for i in range(pos.shape[0]):
+        for w in range(count):
+            d = wall_distance(pos[i, 0], pos[i, 1], pos[i, 2], w, plane_p, plane_n, facets, nv)
+            if d < out[i]:
+                out[i] = d
+
+
+@njit(cache=True)
+def wall_overlap_squares(pos, radius, n, wstart, wid, plane_p, plane_n, facets, nv):
+    """Σ_i max(r_i − distance to the nearest candidate wall, 0)² over the rows' wall candidate lists (m²)."""
+    total = 0.0
+    for i in range(n):
+        best = np.inf
+        for k in range(wstart[i], wstart[i + 1]):
+            d = wall_distance(pos[i, 0], pos[i, 1], pos[i, 2], wid[k], plane_p, plane_n, facets, nv)
+            if d < best:
+                best = d
+        if radius[i] > best:
+            total += (radius[i] - best) ** 2
+    return total
 
 
 def touching(walls: Walls, pos: np.ndarray, radius: np.ndarray) -> np.ndarray:
