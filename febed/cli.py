@@ -31,7 +31,12 @@ from febed.post import cli as post_cli
 from febed.schema import BOUNDARY, SCHEMA, describe
 
 # run.mode -> module with `run(case, outdir, log)`; a mode whose module is absent is reported clearly.
-RUNNERS = {"dem": "febed.dem.driver", "gas": "febed.gas.driver", "cfd-dem": "febed.solver"}
+RUNNERS = {
+    "dem": "febed.dem.driver",
+    "gas": "febed.gas.driver",
+    "cfd-dem": "febed.solver",
+    "one-way": "febed.coarse.oneway",
+}
 
 
 class UserError(Exception):

@@ -382,8 +382,8 @@ class CoupledSolver:
 
 
 def depth_of(case) -> float:
-    """2D depth (m) turning areas into volumes: `[mesh] depth`, or one particle diameter if 0."""
-    return case.mesh.depth if case.mesh.depth > 0 else case.particles.diameter
+    """2D depth (m) turning areas into volumes: `[mesh] depth`, or one (inserted) particle diameter."""
+    return coarse.particle_depth(case)
 
 
 def build_solver(case, md, log) -> CoupledSolver:

@@ -155,3 +155,53 @@ def run_oneway(case: OneWayCase, outdir, log=None, dem=None, sink=None) -> OneWa
     if log is not None:
         log.info(f"one-way run: {ow.windows} drag windows to t = {ow.t:.6g} s in {wall:.3g} s; removed {ow.removed}")
     return ow
+
+
+def case_settings(case) -> OneWayCase:
+    """The `OneWayCase` of a case file's `[prescribed_gas]`, `[gas]`, `[coupling] drag` and `[run]`."""
+    g = case.prescribed_gas
+    flow_params = {
+        "uniform": lambda: {"velocity": tuple(g.velocity)},
+        "vortex": lambda: {
+            "rpm": g.rpm,
+            "inflow_ratio": g.inflow_ratio,
+            "center": tuple(g.center),
+            "outlet_radius": g.outlet_radius,
+            "outlet_velocity": g.outlet_velocity,
+        },  # fmt: skip
+        "function": lambda: {"function": g.function},
+    }[g.flow]()
+    if g.flow == "function" and ":" not in g.function:
+        raise ValueError(f"[prescribed_gas] function = {g.function!r}: give 'module:function'")
+    return OneWayCase(
+        flow=g.flow, flow_params=flow_params, drag=case.coupling.drag, density=case.gas.density,
+        viscosity=case.gas.viscosity, end_time=case.run.end_time, window=g.window, drag_factor=g.drag_factor,
+        integration=g.integration, output_interval=g.output_interval,
+    )  # fmt: skip
+
+
+def run(case, outdir, log, comm=None) -> OneWay:
+    """`[run] mode = "one-way"`: the case's particles (walls and bed from its mesh) in its prescribed gas.
+
+    Particles whose centre leaves the mesh's bounding box (an open outlet) are removed and counted.
+    Writes outdir/particles.csv (t, gid, x, v every `output_interval`). One process.
+    """
+    from mpi4py import MPI
+
+    from febed.dem.driver import build_dem
+    from febed.meshing import load_case_mesh
+
+    comm = comm or MPI.COMM_WORLD
+    if comm.size > 1:
+        raise ValueError("[run] mode = 'one-way' runs on one process: start it without mpirun")
+    settings = case_settings(case)
+    md = load_case_mesh(case, comm, cache_dir=Path(outdir) / "mesh")
+    dem = build_dem(case, md, log)
+    x = md.mesh.geometry.x
+    lo, hi = x.min(axis=0) - 1e-9, x.max(axis=0) + 1e-9
+
+    def outside(pos, diameter):
+        return np.any((pos < lo) | (pos > hi), axis=1)
+
+    log.info(f"one-way: {dem.particles.n_owned} particles in a prescribed {settings.flow} gas, drag {settings.drag}")
+    return run_oneway(settings, outdir, log, dem=dem, sink=outside)

@@ -166,12 +166,15 @@ class GroupDynamics:
         d_cl = np.ascontiguousarray(d_cl, dtype=float)
         if d_cl.shape != (n,):
             raise ValueError(f"d_cl: must have shape ({n},), got {d_cl.shape}")
-        if P.n_ghost:
-            raise ValueError("GroupDynamics.apply: ghost particles present; call it on owned particles only")
         stats = EventStats(d_cl_min=float(d_cl[np.isfinite(d_cl)].min()) if np.isfinite(d_cl).any() else math.inf)
-        if n == 0:
+        ex = getattr(dem, "exchange", None)
+        if n == 0 and ex is None:
             return stats
-        e0 = self._energy(dem) if self.measure_energy else 0.0
+        e0 = self._energy(dem) if self.measure_energy else 0.0  # (collective with MPI)
+        if P.n_ghost:  # events see this rank's groups only (MPI): drop the ghost rows, keeping the history
+            dem.save_history()
+            P.n_ghost = 0
+            dem.touch()
         cap = int(P.n_orig[:n].sum()) + n
         new_pos = np.empty((cap, 3))
         new_vel = np.empty((cap, 3))
@@ -194,8 +197,8 @@ class GroupDynamics:
             nn = new_n[:m]
             dem.add_particles(new_pos[:m], self.d_orig * np.cbrt(nn.astype(float)), self.rho_p, vel=new_vel[:m],
                               omega=new_omega[:m], n_orig=nn)  # fmt: skip
-        if self.measure_energy and m:
-            stats.energy_injected = self._energy(dem) - e0
+        if self.measure_energy and (ex.any(m > 0) if ex is not None else m):
+            stats.energy_injected = self._energy(dem) - e0  # (global with MPI: every rank reports the total)
         stats.groups = P.n_owned
         stats.originals = int(P.n_orig[: P.n_owned].sum())
         return stats

@@ -50,20 +50,34 @@ def check_case(case) -> list[str]:
     return problems
 
 
-def parcels(case, count_orig: int) -> ParcelSpec:
-    """The particles standing for `count_orig` originals under the case's coarse-grain model."""
+def parcels(case, count_orig: int, dim: int = 3) -> ParcelSpec:
+    """The particles standing for `count_orig` originals under the case's coarse-grain model.
+
+    In 2D (`dim` = 2) TM and PCPM insert round(N / l²) parcels: the bed is a layer one particle thick (the
+    depth, `particle_depth`), so N / l² parcels of l d cover the same area as N originals and the layer,
+    l times thicker, keeps the bed's height, solid fraction and weight per unit area.
+    """
     p, cg = case.particles, case.coarse_grain
     if cg.model in ("tm", "pcpm"):
         from febed.coarse.tm import parcel_count, tm_parcels
 
         d, n = tm_parcels(p.diameter, cg.ratio)
-        return ParcelSpec(d, p.density, parcel_count(count_orig, cg.ratio), n)
+        count = parcel_count(count_orig, cg.ratio) if dim == 3 else max(1, round(count_orig / cg.ratio**2))
+        return ParcelSpec(d, p.density, count, n)
     if cg.model == "scg":
         from febed.coarse.scg import scg_count, scg_particles
 
         d, rho = scg_particles(p.diameter, p.density, cg.ratio)
         return ParcelSpec(d, rho, scg_count(count_orig, cg.ratio), 1)
     return ParcelSpec(p.diameter, p.density, count_orig, 1)
+
+
+def particle_depth(case) -> float:
+    """2D depth (m) turning areas into volumes: `[mesh] depth`, or one inserted particle's diameter."""
+    if case.mesh.depth > 0:
+        return case.mesh.depth
+    cg = case.coarse_grain
+    return case.particles.diameter * (cg.ratio if cg.model != "none" else 1.0)
 
 
 def dem_params(case, params):

@@ -26,7 +26,15 @@ from mpi4py import MPI
 import numpy as np
 
 from febed.coarse import setup as coarse
-from febed.dem.insertion import count_from_mass, lattice_positions, load_bed, random_positions, save_bed, settle
+from febed.dem.insertion import (
+    count_from_mass,
+    lattice_capacity,
+    lattice_positions,
+    load_bed,
+    random_positions,
+    save_bed,
+    settle,
+)
 from febed.dem.particles import Particles
 from febed.dem.solver import DEM
 from febed.dem.walls import Walls, touching
@@ -99,6 +107,7 @@ def insert_in_mesh(case, md, walls: Walls, dim: int, count: int | None = None, d
         k = int(math.ceil(count * factor))
         try:
             if p.insertion == "lattice":
+                k = min(k, lattice_capacity(lo, hi, d, dim))  # sites off the mesh or on walls are dropped below
                 pos = lattice_positions(k, lo, hi, d, dim, rng=np.random.default_rng(case.run.seed))
             else:
                 pos = random_positions(k, lo, hi, d, dim, seed=case.run.seed)
@@ -167,7 +176,7 @@ def build_dem(case, md, log, exchange=None) -> DEM:
     if bed_path is not None and not p.pack_if_missing:
         raise ValueError(f"[particles] bed_file {bed_path} does not exist and pack_if_missing = false")
     dem = dem_from_case(case, walls, dim, Particles())
-    spec = coarse.parcels(case, original_count(case))
+    spec = coarse.parcels(case, original_count(case), dim)
     pos = insert_in_mesh(case, md, walls, dim, spec.count, spec.diameter)
     dem.add_particles(pos, spec.diameter, spec.density, n_orig=spec.n_orig)
     if exchange is not None:

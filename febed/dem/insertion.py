@@ -36,6 +36,19 @@ def _check_box(lo, hi, diameter, dim):
     return lo, hi
 
 
+def _lattice_shape(lo, hi, diameter, dim, gap):
+    n = np.maximum(np.floor((hi - lo - diameter) / (diameter * (1.0 + gap))).astype(int) + 1, 1)
+    if dim == 2:
+        n[2] = 1
+    return n
+
+
+def lattice_capacity(lo, hi, diameter: float, dim: int = 3, gap: float = 0.05) -> int:
+    """Number of lattice sites `lattice_positions` has in the box [lo, hi] for spheres of `diameter`."""
+    lo, hi = _check_box(lo, hi, diameter, dim)
+    return int(np.prod(_lattice_shape(lo, hi, diameter, dim, gap)))
+
+
 def lattice_positions(count: int, lo, hi, diameter: float, dim: int = 3, gap: float = 0.05, rng=None) -> np.ndarray:
     """Centres (count, 3) on a cubic lattice of spacing d (1 + gap) inside [lo, hi], filled from the bottom.
 
@@ -44,9 +57,7 @@ def lattice_positions(count: int, lo, hi, diameter: float, dim: int = 3, gap: fl
     """
     lo, hi = _check_box(lo, hi, diameter, dim)
     s = diameter * (1.0 + gap)
-    n = np.maximum(np.floor((hi - lo - diameter) / s).astype(int) + 1, 1)
-    if dim == 2:
-        n[2] = 1
+    n = _lattice_shape(lo, hi, diameter, dim, gap)
     up = 1 if dim == 2 else 2
     per_layer = int(np.prod(n)) // n[up]
     if per_layer * n[up] < count:
