@@ -132,7 +132,7 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "max_overlap": Param(
             0.1,
             "",
-            "the run fails if a particle overlap exceeds this fraction of the smallest diameter",
+            "the run fails if a contact's overlap exceeds this fraction of its smaller particle's diameter",
             float,
             lo=0.0,
             lo_open=True,

@@ -55,7 +55,7 @@ class Limits:
     """When a run is declared failed (`[run]` keys of the same names; see `CoupledSolver.check`).
 
     Attributes:
-        max_overlap: largest particle overlap allowed, as a fraction of the smallest diameter.
+        max_overlap: largest particle overlap allowed, as a fraction of the pair's smaller diameter.
         max_clipped_fraction: largest share of the nodes whose void fraction may sit at the floor.
     """
 
@@ -265,7 +265,7 @@ class CoupledSolver:
         """Raise RunFailure on every rank if any rank finds a problem (collective; call after each step).
 
         Checks: a particle that left the mesh other than by an outlet; non-finite particle or gas values;
-        an overlap above `max_overlap` of the smallest diameter during the last step; more than
+        an overlap above `max_overlap` of the pair's smaller diameter during the last step; more than
         `max_clipped_fraction` of the nodes with ε at its floor. The message says what, where and when.
         """
         msg = self._failure or self._local_problem()
@@ -293,7 +293,7 @@ class CoupledSolver:
                 return f"gas {name} is not finite at the node at {self.ma.x_dofs[k].tolist()} m {when}"
         if self.dem.max_overlap > self.limits.max_overlap:
             return (
-                f"a particle overlap reached {100 * self.dem.max_overlap:.3g} % of the diameter during the gas step "
+                f"a particle overlap reached {100 * self.dem.max_overlap:.3g} % of a diameter during the gas step "
                 f"ending {when}, above run.max_overlap = {100 * self.limits.max_overlap:g} %"
                 f"{self._worst_pair()}; lower the DEM step (contact.dt_factor) or stiffen the contacts"
             )

@@ -48,7 +48,10 @@ def compute_forces(
     force,
     torque,
 ):
-    """Set force (N) = m g + contact forces, torque (N m) = contact torques of rows [0, n); returns max overlap (m)."""
+    """Set force (N) = m g + contact forces, torque (N m) = contact torques of rows [0, n).
+
+    Returns the largest overlap relative to the smaller diameter of its pair (a wall: the particle's).
+    """
     rot = 1.0 if rotation else 0.0
     invm = np.empty(n)  # 1/m and r^2/I once per particle instead of once per pair
     kr = np.empty(n)
@@ -89,7 +92,7 @@ def compute_forces(
                 continue
             dist = math.sqrt(d2)
             delta = rs - dist  # seed 001 eq 10
-            worst = max(worst, delta)
+            worst = max(worst, delta / (2.0 * min(ri, rj)))  # relative to the smaller sphere
             inv = 1.0 / dist
             nx = dx * inv  # seed 001 eq 12: from i towards j
             ny = dy * inv
@@ -214,7 +217,7 @@ def compute_forces(
             ny = -ms[c, 1]
             nz = -ms[c, 2]
             delta = dl[c]
-            worst = max(worst, delta)
+            worst = max(worst, delta / (2.0 * ri))
             vx = vel[i, 0] + ri * (omega[i, 1] * nz - omega[i, 2] * ny)
             vy = vel[i, 1] + ri * (omega[i, 2] * nx - omega[i, 0] * nz)
             vz = vel[i, 2] + ri * (omega[i, 0] * ny - omega[i, 1] * nx)

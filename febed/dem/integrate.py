@@ -94,7 +94,7 @@ def verlet_steps(
     start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2, resume,
     vp, wp, x0, htmp, whtmp,
 ):  # fmt: skip
-    """Velocity Verlet for up to n_steps of dt (s); returns (steps completed, max overlap (m), code).
+    """Velocity Verlet for up to n_steps of dt (s); returns (steps completed, largest overlap / smaller diameter, code).
 
     code 0: done; 2: a particle moved more than half the skin during the drift of the next step: rebuild the
     lists and call again with resume=True (the drift is done, the force evaluation resumes).
@@ -133,7 +133,7 @@ def rk2_steps(
     start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2, resume,
     x0, v0, w0, htmp, whtmp,
 ):  # fmt: skip
-    """RK2 of seed 001 eqs 40-41 for up to n_steps of dt (s); returns (steps, max overlap (m), code).
+    """RK2 of seed 001 eqs 40-41 for up to n_steps of dt (s); returns (steps, largest overlap / smaller diameter, code).
 
     code 0: done; 1: rebuild the lists before the next step (displacement since the build plus dt |v| exceeds
     half the skin).
@@ -208,7 +208,7 @@ def _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, 
 
 
 def rk2_staged(dem, n_steps: int, dt: float) -> float:
-    """RK2 steps stage by stage with ghost updates before each force evaluation (MPI); returns max overlap (m).
+    """RK2 steps stage by stage with ghost updates before each force evaluation (MPI); returns the largest relative overlap.
 
     Same kernels and arithmetic as `rk2_steps`. The end-of-step ghost update carries the rebuild criterion's
     reduction over the ranks (two synchronisations per step).
@@ -245,7 +245,7 @@ def rk2_staged(dem, n_steps: int, dt: float) -> float:
 
 
 def verlet_staged(dem, n_steps: int, dt: float) -> float:
-    """Velocity Verlet step by step with ghost updates before each force evaluation (MPI); returns max overlap (m).
+    """Velocity Verlet step by step with ghost updates before each force evaluation (MPI); returns the largest relative overlap.
 
     Same kernels and arithmetic as `verlet_steps`; the ghost update after each drift carries the rebuild
     criterion's reduction over the ranks (one synchronisation per step).

@@ -109,7 +109,7 @@ class DEM:
         self.whist = np.zeros((64, 3))
         self.time = 0.0
         self.steps = 0
-        self.max_overlap = 0.0  # largest overlap / diameter seen since the last reset
+        self.max_overlap = 0.0  # largest overlap / smaller diameter of the pair seen since the last reset
         self._dirty = True
         self._forces_valid = False
         self._dt = None
@@ -338,7 +338,7 @@ class DEM:
     # ------------------------------------------------------------------ stepping
 
     def compute_forces(self, dt_eval: float = 0.0, dt_store: float = 0.0) -> float:
-        """Evaluate force and torque of every particle now (history not advanced); returns the max overlap (m)."""
+        """Evaluate force and torque of every particle now (history not advanced); returns the largest relative overlap."""
         if self._dirty:
             self.rebuild()
         P = self.particles
@@ -381,11 +381,10 @@ class DEM:
             self.compute_forces()
         done = 0
         resume = False
-        dmin = float(P.diameter[: P.n_owned].min())
         while done < n_steps:
             k, worst, code = self._run(n_steps - done, dt, resume)
             done += k
-            self.max_overlap = max(self.max_overlap, worst / dmin)
+            self.max_overlap = max(self.max_overlap, worst)
             if code:
                 self.rebuild()
             resume = code == 2
@@ -422,10 +421,8 @@ class DEM:
         if verlet and ex.any(not self._forces_valid):
             ex.update_ghosts(P, P.vel, P.omega)
             self.compute_forces()
-        d = float(P.diameter[: P.n_owned].min()) if P.n_owned else np.inf
-        dmin = ex.min(d)
         worst = self.integrator.staged(self, n_steps, dt)
-        self.max_overlap = max(self.max_overlap, worst / dmin)
+        self.max_overlap = max(self.max_overlap, worst)
         self._forces_valid = True
         self.time += n_steps * dt
         self.steps += n_steps
