@@ -338,7 +338,7 @@ class DEM:
     # ------------------------------------------------------------------ stepping
 
     def compute_forces(self, dt_eval: float = 0.0, dt_store: float = 0.0) -> float:
-        """Evaluate force and torque of every particle now (history not advanced); returns the largest relative overlap."""
+        """Evaluate force and torque of every particle now (history kept); returns the largest relative overlap."""
         if self._dirty:
             self.rebuild()
         P = self.particles
