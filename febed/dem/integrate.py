@@ -208,7 +208,7 @@ def _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, 
 
 
 def rk2_staged(dem, n_steps: int, dt: float) -> float:
-    """RK2 steps stage by stage with ghost updates before each force evaluation (MPI); returns the largest relative overlap.
+    """RK2 steps stage by stage with ghost updates before each force evaluation (MPI); returns the max overlap ratio.
 
     Same kernels and arithmetic as `rk2_steps`. The end-of-step ghost update carries the rebuild criterion's
     reduction over the ranks (two synchronisations per step).
@@ -245,7 +245,7 @@ def rk2_staged(dem, n_steps: int, dt: float) -> float:
 
 
 def verlet_staged(dem, n_steps: int, dt: float) -> float:
-    """Velocity Verlet step by step with ghost updates before each force evaluation (MPI); returns the largest relative overlap.
+    """Velocity Verlet step by step, ghosts updated before each force evaluation (MPI); returns the max overlap ratio.
 
     Same kernels and arithmetic as `verlet_steps`; the ghost update after each drift carries the rebuild
     criterion's reduction over the ranks (one synchronisation per step).
