@@ -83,6 +83,9 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
     arrays = {f"gas/{k}": v for k, v in gas.get_state().items()}
     arrays["gas/x"] = gas.x[:n].copy()
     dem = s.dem.get_state()
+    if "saved_keys" not in dem and int(dem.get("lists_valid", 0)):  # one rank: the lists hold the history;
+        (k, v), (wk, wv) = s.dem._history_keys()  # keyed by gids too, for a restart on other rank counts
+        dem.update(keyed_keys=k, keyed_vals=v, keyed_wkeys=wk, keyed_wvals=wv)
     for k, v in dem.items():
         arrays[f"dem/{k}"] = np.array(v, copy=True)
     meta = {
@@ -178,7 +181,10 @@ def reload_particles(run, arrays: dict[str, np.ndarray], meta: dict) -> None:
 
 def _portable(dem: dict) -> dict:
     """A DEM state in global-id order without the rank-local neighbour lists (rebuilt from the keyed history)."""
-    out = {k: v for k, v in dem.items() if not k.startswith(("pl_start", "pl_nbr", "pl_hist", "w_"))}
+    out = {k: v for k, v in dem.items() if not k.startswith(("pl_start", "pl_nbr", "pl_hist", "w_", "keyed_"))}
+    if "keyed_keys" in dem and "saved_keys" not in dem:  # a one-rank checkpoint: its history keyed by gids
+        out.update({f"saved_{k[6:]}": dem[k] for k in dem if k.startswith("keyed_")})
+        out["has_saved"] = 1
     order = np.argsort(out["p_gid"], kind="stable")
     out.update({k: np.asarray(v)[order] for k, v in out.items() if k.startswith(_ROWS) and k != "p_next_gid"})
     out["lists_valid"], out["dirty"], out["forces_valid"] = 0, 1, 0

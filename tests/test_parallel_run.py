@@ -83,7 +83,7 @@ def test_two_ranks_follow_the_serial_bed(serial, tmp_path):
     assert "load imbalance max/mean" in log
 
 
-def test_restart_on_two_ranks_and_onto_one(tmp_path):
+def test_restart_on_two_ranks_onto_one_and_back(tmp_path):
     straight, split = tmp_path / "straight", tmp_path / "split"
     febed(straight, 0.012, 2, "--set", "output.checkpoint_interval=0.006")
     febed(split, 0.006, 2)
@@ -100,6 +100,9 @@ def test_restart_on_two_ranks_and_onto_one(tmp_path):
     (pc, mc) = by_gid(split)
     assert mc["ranks"] == 1 and np.array_equal(pc["gid"], pa["gid"])
     assert probes(split)["particles"][-1] == 4080
+    febed(split, 0.02, 2, "--restart")  # and back onto 2 ranks from the one-rank checkpoint
+    (pd, md) = by_gid(split)
+    assert md["ranks"] == 2 and np.array_equal(pd["gid"], pa["gid"])
 
 
 def test_sigterm_under_mpirun_leaves_a_checkpoint_and_the_run_completes(tmp_path):
