@@ -1,6 +1,7 @@
 """Shared pytest fixtures: MPI-safe temporary folders and collective teardown (STYLE.md item 2)."""
 
 import gc
+import logging
 import shutil
 import tempfile
 from pathlib import Path
@@ -24,8 +25,17 @@ def mpi_tmp_path():
 
 @pytest.fixture(autouse=True)
 def _collective_teardown():
-    """PETSc destructors are collective: collect garbage on every rank, then wait for all of them."""
+    """PETSc destructors are collective: collect garbage on every rank, then wait for all of them.
+
+    Also undoes `febed.io.rundir.get_logger` (runs through the CLI set up the `febed` logger with its own
+    handlers and no propagation), so each test sees log records through pytest's caplog again.
+    """
     yield
+    log = logging.getLogger("febed")
+    for h in list(log.handlers):
+        log.removeHandler(h)
+        h.close()
+    log.propagate = True
     gc.collect()
     MPI.COMM_WORLD.barrier()
 
