@@ -119,6 +119,8 @@ diameter = 5e-5
 density = 2500.0
 count = 1
 region = [0.002, 0.009, 0.009, 0.004, 0.011, 0.011]
+[contact]
+stiffness = 1e-4  # a lone particle: soft contacts keep the DEM step (T_C / 6) long
 [coupling]
 drag = "stokes"
 [prescribed_gas]
