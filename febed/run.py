@@ -30,7 +30,6 @@ Definitions:
 
 from __future__ import annotations
 
-import json
 import math
 import signal
 import time
@@ -48,10 +47,8 @@ from febed.coupling.weights import compute_weights
 from febed.io.checkpoint import FOLDER, CheckpointError, write_checkpoint
 from febed.io.probes import ProbeFile
 from febed.io.progress import Progress, clock
-from febed.io.rundir import atomic_write_text
+from febed.io.rundir import write_status
 from febed.solver import RunFailure, build_solver
-
-STATUS = "status.json"
 
 
 class Interrupted(Exception):
@@ -308,13 +305,8 @@ class CoupledRun:
 
     def status(self, state: str, message: str = "") -> None:
         """Write `status.json`: state (running / finished / failed / interrupted), time, end time, message."""
-        if self.comm.rank != 0:
-            return
         s = self.solver
-        info = {"state": state, "time": s.t, "step": s.steps, "end_time": self.case.run.end_time}
-        if message:
-            info["message"] = message
-        atomic_write_text(self.outdir / STATUS, json.dumps(info, indent=1) + "\n")
+        write_status(self.outdir, state, s.t, self.case.run.end_time, s.steps, message, self.comm)
 
     def _requests(self) -> tuple[int, bool]:
         """(signal received, wall-clock checkpoint due), agreed by all ranks (collective under MPI)."""

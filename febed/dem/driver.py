@@ -202,6 +202,7 @@ def build_dem(case, md, log, exchange=None) -> DEM:
 def run(case, outdir, log, comm=MPI.COMM_WORLD) -> DEM:
     """Run a pure-DEM case to `run.end_time`, writing particle output to `outdir`; returns the DEM."""
     from febed.io.particles import ParticleWriter
+    from febed.io.rundir import write_status
     from febed.meshing import load_case_mesh
 
     md = load_case_mesh(case, comm)
@@ -217,6 +218,7 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD) -> DEM:
              f"(T_C/{dem.params.dt_factor:g}), {dem.params.integrator}, law {dem.params.contact_model}, "
              f"to t = {end:g} s")  # fmt: skip
     writer.write(dem.time, dem.particles)
+    write_status(outdir, "running", dem.time, end, dem.steps, comm=comm)
     _log_balance(dem, log)
     next_out = out_every
     start_wall = last_log = time.time()
@@ -243,6 +245,7 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD) -> DEM:
                      f"{comm.allreduce(left_total)} left, ETA {eta:.0f} s")  # fmt: skip
             last_log = now
     left_total = comm.allreduce(left_total)
+    write_status(outdir, "finished", dem.time, end, dem.steps, comm=comm)
     log.info(
         f"DEM done: t = {dem.time:.5f} s, {dem.steps} steps in {time.time() - start_wall:.1f} s; "
         f"max overlap {100 * dem.global_max(dem.max_overlap):.3f} % d; {left_total} particles left the domain"

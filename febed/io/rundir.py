@@ -4,6 +4,7 @@ Layout of an output folder (`[output] directory`, default `./runs/<case name>/`)
 
     case.resolved.toml   the case with every default filled in (what actually ran)
     febed.log            the log (same lines as the console, with time stamps)
+    status.json          running / finished / failed / interrupted, and the simulated time reached
     mesh/                built-in meshes generated for this run (.msh)
     ...                  fields, particles, probes, checkpoints (written by their modules)
 
@@ -24,6 +25,7 @@ from mpi4py import MPI
 
 RESOLVED_CASE = "case.resolved.toml"
 LOG_FILE = "febed.log"
+STATUS_FILE = "status.json"
 
 
 class OutputError(RuntimeError):
@@ -44,6 +46,19 @@ def atomic_write_text(path: Path, text: str) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def write_status(outdir: Path, state: str, time: float, end_time: float, step: int = 0, message: str = "",
+                 comm=MPI.COMM_WORLD) -> None:  # fmt: skip
+    """Write `status.json` (rank 0, atomically): running / finished / failed / interrupted, time reached."""
+    if comm.rank != 0:
+        return
+    import json
+
+    info = {"state": state, "time": float(time), "step": int(step), "end_time": float(end_time)}
+    if message:
+        info["message"] = message
+    atomic_write_text(Path(outdir) / STATUS_FILE, json.dumps(info, indent=1) + "\n")
 
 
 def prepare_output(case, overwrite: bool = False, comm=MPI.COMM_WORLD) -> Path:
