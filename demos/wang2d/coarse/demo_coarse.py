@@ -41,14 +41,17 @@ RUNS = {
     "pcpm1": ("pcpm1.toml", 1, "PCPM from l = 1 (adaptive gas step)"),
     "pcpm1b": ("pcpm1b.toml", 1, "PCPM from l = 1, fixed gas step"),
     "pcpm1c": ("pcpm1c.toml", 1, "PCPM from l = 1, gas LES"),
+    "tm1c": ("tm1c.toml", 1, "TM l = 1 (DEM), gas LES"),
     "tm2": ("tm2.toml", 1, "TM l = 2"),
     "pcpm2": ("pcpm2.toml", 1, "PCPM from l = 2 (adaptive gas step)"),
     "pcpm2b": ("pcpm2b.toml", 1, "PCPM from l = 2, fixed gas step"),
     "pcpm2c": ("pcpm2c.toml", 1, "PCPM from l = 2, gas LES"),
+    "tm2c": ("tm2c.toml", 1, "TM l = 2, gas LES"),
     "tm3": ("tm3.toml", 1, "TM l = 3"),
     "pcpm2b-np2": ("pcpm2b.toml", 2, "PCPM from l = 2, fixed gas step, 2 ranks"),
     "pcpm2c-np2": ("pcpm2c-np2.toml", 2, "PCPM from l = 2, gas LES, 2 ranks"),
     "dem9600": ("dem9600.toml", 1, "9,600 at 1.9 m/s, DEM"),
+    "dem9600-emms": ("dem9600-emms.toml", 1, "9,600 at 1.9 m/s, DEM, EMMS drag"),
     "pcpm9600b": ("pcpm9600b.toml", 1, "9,600 at 1.9 m/s, PCPM from l = 1"),
 }
 
@@ -60,7 +63,7 @@ parser.add_argument("--no-run", action="store_true", help="only plot the finishe
 args = parser.parse_args()
 end_time = args.end_time or (0.05 if args.quick else 1.0)
 OUT = HERE / ("runs-quick" if args.quick else "runs")
-FIG = OUT / "figures"
+FIG = OUT / "figures" if args.quick else HERE / "figures"  # the study's figures are committed
 FIG.mkdir(parents=True, exist_ok=True)
 
 
@@ -97,8 +100,8 @@ if not args.no_run:
 
 # ## Reading the results
 #
-# Probes every 1 ms (`probes.csv`); of a failed run only the part before its gas step first shrank or its
-# CFL number passed 0.25 (the runaways described in pcpm1b.toml and pcpm1c.toml) less 10 ms, wall time and
+# Probes every 1 ms (`probes.csv`); of a failed run only the part before its gas step fell below 1e-5 s or its
+# CFL number passed 0.5 (the runaways described in pcpm1b.toml and pcpm1c.toml) less 30 ms, wall time and
 # statistics included. The run's own wall time (gas + DEM + coupling + output, without mesh, bed loading
 # and start-up) from the last line of `febed.log`;
 # the failure message if the run stopped.
@@ -135,9 +138,9 @@ for name in RUNS:
         info["failure"] = info["failure"] or f"stopped at t = {pr['time'][-1]:.4f} s (gas step {pr['dt'][-1]:.2g} s)"
     if info["failure"]:  # keep the part before the gas step first shrank (the runaway), less 10 ms
         dt = pr["dt"][1:]
-        short = np.nonzero((dt < 0.99 * dt.max()) | (pr["cfl"][1:] > 0.25))[0]  # TM runs: CFL <= 0.19
+        short = np.nonzero((dt < 1e-5) | (pr["cfl"][1:] > 0.5))[0]  # finished runs: CFL <= 0.21, dt >= 7e-5 s
         if short.size:
-            keep = pr["time"] <= pr["time"][1 + short[0]] - 0.01
+            keep = pr["time"] <= pr["time"][1 + short[0]] - 0.03
             pr = {k: v[keep] for k, v in pr.items()}
             info["wall"] = sum(pr[f"wall_{k}"][-1] for k in ("dem", "coupling", "gas", "output"))
             info["t_end"] = pr["time"][-1]
@@ -157,7 +160,9 @@ M_O = RHO * math.pi / 6 * D**3
 def weight_per_area(name: str) -> float:
     """Bed weight per cross-section (Pa) of run `name`: N_orig m_O g / (width x depth)."""
     pr = res[name]["pr"]
-    ratio = {"tm2": 2, "pcpm2": 2, "pcpm2b": 2, "pcpm2c": 2, "pcpm2b-np2": 2, "pcpm2c-np2": 2, "tm3": 3}.get(name, 1)
+    ratio = {"tm2": 2, "pcpm2": 2, "pcpm2b": 2, "pcpm2c": 2, "tm2c": 2, "pcpm2b-np2": 2, "pcpm2c-np2": 2, "tm3": 3}.get(
+        name, 1
+    )
     n_parcels = pr["particles"][0]
     n_orig = pr["originals"][0] if "originals" in pr else n_parcels * ratio**3
     return n_orig * M_O * G / (WIDTH * ratio * D)
@@ -178,7 +183,21 @@ def save_small(fig, path: Path, dpi: int) -> None:
 #
 # The pressure drop "at 45 mm" is the section-averaged pressure at 45 mm above the distributor minus that at
 # the outlet (seed 000 Figs 6 and 11); normalised by the bed weight per area so every l reads alike.
-ALL_4080 = ("tm1", "pcpm1", "pcpm1b", "pcpm1c", "tm2", "pcpm2", "pcpm2b", "pcpm2c", "tm3", "pcpm2b-np2", "pcpm2c-np2")
+ALL_4080 = (
+    "tm1",
+    "tm1c",
+    "pcpm1",
+    "pcpm1b",
+    "pcpm1c",
+    "tm2",
+    "tm2c",
+    "pcpm2",
+    "pcpm2b",
+    "pcpm2c",
+    "tm3",
+    "pcpm2b-np2",
+    "pcpm2c-np2",
+)
 groups_4080 = [n for n in ALL_4080 if n in res]
 
 
@@ -192,7 +211,7 @@ main_4080 = [n for n in ("tm1", "tm2", "tm3") if n in res]
 main_4080[1:1] = furthest("pcpm1", "pcpm1b", "pcpm1c")
 main_4080[3:3] = furthest("pcpm2", "pcpm2b", "pcpm2c")
 main_4080 += furthest("pcpm2b-np2", "pcpm2c-np2")
-groups_9600 = [n for n in ("dem9600", "pcpm9600b") if n in res]
+groups_9600 = [n for n in ("dem9600", "dem9600-emms", "pcpm9600b") if n in res]
 for tag, names, all_names in (("4080", main_4080, groups_4080), ("9600", groups_9600, groups_9600)):
     if not names:
         continue
@@ -254,8 +273,9 @@ for tag, names in (
 ):
     if not names:
         continue
-    want = [0.36, 0.40, 0.44, 0.48, 1.0] if not args.quick else [0.0, 0.02, 0.05]
-    ymax = 400 if tag == "9600" else 250
+    want = [0.36, 0.40, 0.44, 0.48, 1.0] if tag == "4080" else [0.1, 0.2, 0.3, 0.4, 0.6, 1.0]
+    want = [0.0, 0.02, 0.05] if args.quick else want
+    ymax = 500 if tag == "9600" else 250
     h = 1.1 * ymax / 90
     fig, axes = plt.subplots(
         len(names), len(want), figsize=(1.1 * len(want) + 1.2, h * len(names) + 0.4), squeeze=False
@@ -281,7 +301,7 @@ for tag, names in (
             a.set_title(f"{times[i]:.2f} s", fontsize=7, pad=2)
         row[0].set_ylabel(RUNS[n][2], fontsize=7)
     fig.colorbar(sc, cax=fig.add_axes([0.86, 0.3, 0.02, 0.4]), label="n_orig (originals per particle)")
-    save_small(fig, FIG / f"snapshots_{tag}.png", dpi=70)
+    save_small(fig, FIG / f"snapshots_{tag}.png", dpi=70 if tag == "4080" else 50)
     plt.close(fig)
 
 # ## Table
@@ -333,4 +353,15 @@ for r in rows:
         f"{r['dp45_over_W']:6.3f} {r['dp45_std_over_W']:5.3f} {r['bed_height_mm']:6.1f} {gs:>22s} "
         f"{r['crushed']:6.0f} {r['merged']:6.0f}" + (f"  FAILED: {r['failure'][:90]}" if r["failure"] else "")
     )
-print(f"figures and table.csv in {FIG}")
+with open(FIG / "table.md", "w") as f:  # the same, for the README
+    f.write("| run | ranks | t reached [s] | wall [s] | wall / TM l=1 | dp_bed/W | dp45/W | std dp45/W "
+            "| bed height [mm] "
+            "| groups mean [min, max] | crushes | merges | event energy [J] |\n")  # fmt: skip
+    f.write("|" + "---|" * 13 + "\n")
+    for r in rows:
+        g = f"{r['groups_mean']:.0f} [{r['groups_min']:.0f}, {r['groups_max']:.0f}]" if r["groups_mean"] > 0 else "–"
+        f.write(f"| {r['label']}{' (failed)' if r['failure'] else ''} | {r['ranks']} | {r['t_end_s']:.3f} | "
+                f"{r['wall_s']:.1f} | {r['wall_rel']:.2f} | {r['dp_bed_over_W']:.3f} | {r['dp45_over_W']:.3f} | "
+                f"{r['dp45_std_over_W']:.3f} | {r['bed_height_mm']:.1f} | {g} | {r['crushed']:.0f} | "
+                f"{r['merged']:.0f} | {r['event_energy_J']:.2g} |\n")  # fmt: skip
+print(f"figures, table.csv and table.md in {FIG}")
