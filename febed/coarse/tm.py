@@ -137,8 +137,8 @@ def use_group_contacts(dem, d_orig: float, rho: float) -> None:
 
     The DEM's particle-particle and wall parameters (of the originals, law `linear`) become `GroupParams` with
     the original pair's effective mass m_O/2 (walls: m_O), m_O = rho pi d_orig^3 / 6. No kernel signature
-    changes: the law reads each pair's ratio from the effective mass it already receives. The DEM step is still
-    computed from the unscaled parameters, which is conservative (the scaled contact time is sqrt(l) longer).
+    changes: the law reads each pair's ratio from the effective mass it already receives. The DEM step follows
+    the same scaling (`febed.dem.integrate.critical_time`: the lightest pair present with its k_n l^2).
     """
     from febed.dem.contact import GroupParams, LinearParams
 
