@@ -58,7 +58,9 @@ def crush_sizes(n, d, d_cl, d_orig):
         return 0, 0, n
     x = d / d_cl
     k = max(1, int(math.floor((d_cl / d_orig) ** 3 * (1.0 + 1e-12))))
-    n_full = min(int(math.floor(x * x)), (n - 1) // k)  # eq 41
+    n_full = min(math.floor(min(x * x, 1e18)), (n - 1) // k)  # eq 41 (x² capped: d_cl -> 0 gives inf)
+    if n_full < 1:
+        return 0, 0, n
     return k, n_full, n - n_full * k  # eq 42
 
 
