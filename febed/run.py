@@ -155,6 +155,7 @@ class CoupledRun:
         self._writers()
         self.display = Progress(log, comm.rank)
         self.good = None  # (arrays, meta) of the last state that passed the health checks
+        self.broken = False  # a rank failed alone: collectives would hang
         self._signal = 0
         self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
         self._t0 = s.t
@@ -351,6 +352,13 @@ class CoupledRun:
             except RunFailure as e:
                 self.fail(e)
                 raise
+            except (ValueError, IndexError, ZeroDivisionError, FloatingPointError, MemoryError) as e:
+                # a blow-up surfacing inside a kernel or NumPy call (e.g. a negative array size): a failure,
+                # not an input error; on several ranks only this rank knows, so no collective checkpoint
+                err = RunFailure(f"numerical failure in the gas step from t = {s.t:.6g} s: {type(e).__name__}: {e}")
+                self.broken = self.comm.size > 1  # the other ranks wait in a collective: no closing output
+                self.fail(err, collective=not self.broken)
+                raise err from e
             self.output()
             sig, wall_due = self._requests()
             if sig or wall_due or s.t >= self.next["checkpoint"] - 1e-12 * end:
@@ -366,11 +374,11 @@ class CoupledRun:
         self.progress(end, force=True)
         self.display.end()
 
-    def fail(self, error: RunFailure) -> None:
-        """Record a failure: write the last good state as a checkpoint and the status (collective)."""
+    def fail(self, error: RunFailure, collective: bool = True) -> None:
+        """Record a failure: write the last good state as a checkpoint (if `collective`) and the status."""
         self.display.end()
         where = ""
-        if self.good is not None:
+        if self.good is not None and collective:
             try:
                 path = self.checkpoint(self.good)
                 where = f"; last good state (t = {self.good[1]['time']:.6g} s) in {path}"
@@ -380,7 +388,9 @@ class CoupledRun:
         self.log.error(f"run failed: {error}{where}")
 
     def close(self) -> None:
-        """Write the last output and close the files."""
+        """Write the last output and close the files (not after a one-rank failure on several ranks)."""
+        if self.broken:
+            return
         self.output(force=True)
         self.probes.close()
         self.fields.close()
