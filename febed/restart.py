@@ -113,7 +113,6 @@ def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> di
     rows.update({f"dem/{k}": arrays[f"dem/{k}"] for k in _HISTORY if f"dem/{k}" in arrays})
     out = gather_rows(rows, comm)
     scalars = ("time", "steps", "dt", "pl_skin", "pl_builds", "max_overlap")
-    counts = comm.gather(int(arrays["dem/p_pos"].shape[0]), root=0)
     top = comm.allreduce(int(arrays["dem/p_gid"].max(initial=-1)), op=MPI.MAX)
     if comm.rank == 0:
         for k in _HISTORY[::2]:  # cross-partition pairs are held by both ranks: keep each key once
@@ -126,7 +125,6 @@ def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> di
         out["dem/has_saved"] = np.array(int("dem/saved_keys" in out))
         out["dem/lists_valid"] = np.array(0)
         out["dem/dirty"] = np.array(1)
-        out["dem/rank_counts"] = np.array(counts)
     return out
 
 
@@ -189,7 +187,6 @@ def _portable(dem: dict) -> dict:
     out.update({k: np.asarray(v)[order] for k, v in out.items() if k.startswith(_ROWS) and k != "p_next_gid"})
     out["lists_valid"], out["dirty"], out["forces_valid"] = 0, 1, 0
     out["pos_ref"] = np.array(out["p_pos"], copy=True)  # lists are rebuilt at the first step
-    out.pop("rank_counts", None)
     return out
 
 

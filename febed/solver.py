@@ -99,7 +99,7 @@ class CoupledSolver:
         self.gas = gas
         self.log = log
         self.gdim = md.gdim
-        self.depth = depth_of(case) if md.gdim == 2 else 1.0
+        self.depth = coarse.particle_depth(case) if md.gdim == 2 else 1.0
         self.ma = extract_mesh_arrays(md.mesh, gas.Q, depth=self.depth)
         cp = case.coupling
         self.coupler = Coupler(
@@ -379,11 +379,6 @@ class CoupledSolver:
         x = self.coupler.project_to_gas(d_orig, n_orig, K, P.vel[: P.n_owned], F_explicit=f_p)
         self.alpha, self.clipped = x.alpha, x.clipped
         return x.eps, x.K, np.ascontiguousarray(x.Kv), np.ascontiguousarray(x.F)
-
-
-def depth_of(case) -> float:
-    """2D depth (m) turning areas into volumes: `[mesh] depth`, or one (inserted) particle diameter."""
-    return coarse.particle_depth(case)
 
 
 def build_solver(case, md, log) -> CoupledSolver:
