@@ -44,6 +44,7 @@ CHANGEABLE = (
     "gas.petsc_options",
     "gas.pressure_rtol",
     "gas.mass_tolerance",
+    "gas.backflow",
 )
 _ROWS = "p_"  # DEM state keys holding one row per particle
 _HISTORY = ("saved_keys", "saved_vals", "saved_wkeys", "saved_wvals")

@@ -192,6 +192,14 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "dt_min": Param(1e-6, "s", "smallest gas time step allowed", float, lo=0.0, lo_open=True),
         "dt_max": Param(1e-3, "s", "largest gas time step allowed", float, lo=0.0, lo_open=True),
         "taylor_galerkin": Param(True, "-", "Lax-Wendroff streamline term that stabilises explicit convection", bool),
+        "backflow": Param(
+            1.0,
+            "",
+            "outlet backflow stabilisation beta: gas re-entering an outlet is braked by beta rho/2 |u.n| u (0 = off)",
+            float,
+            lo=0.0,
+            hi=10.0,
+        ),
         "mass_tolerance": Param(
             1e-6,
             "",

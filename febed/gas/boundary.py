@@ -9,7 +9,8 @@ Each named facet tag gets a `BoundarySpec`:
   the whole cross-section, so the open part carries U_f A_total / A_open, DESIGN.md "Readings").
 * `wall` — no-slip (q = 0) or, with `slip`, zero normal velocity: at each node the directions of
   ∫ φ_i n⊗n ds with a significant weight are removed (so corners and edges are handled).
-* `outlet` — pressure `pressure` [Pa] (Dirichlet for p, zero increment); the velocity is free.
+* `outlet` — pressure `pressure` [Pa] (Dirichlet for p, zero increment); the velocity is free, except that
+  gas flowing back in is braked (backflow stabilisation, `VANSParameters.backflow`, see `febed.gas.vans`).
 * `symmetry` — zero normal velocity, like a slip wall.
 
 Tags of the mesh that the specs do not name are no-slip walls. Where tags meet, a node takes the first of:

@@ -25,6 +25,13 @@ Model choices (and why):
   The skew-symmetric convection keeps the nonlinear terms from feeding kinetic energy into grid modes:
   a nearly inviscid perturbed vortex (ν = 1e-6, 2000 steps at CFL 0.2) loses energy monotonically,
   while the conservative form with the same TG term blows up after ~1500 steps and plain FE at once.
+* **Outlet backflow**: an outlet with a fixed pressure and a free velocity lets gas re-enter, carrying
+  kinetic energy into the domain that nothing removes; when a plume reaches the outlet a vortex there
+  grows until the step collapses (observed in the seed-000 bed from t ≈ 0.5 s: outlet speeds 2.5 m/s,
+  then 25 m/s). Following Moghadam et al. (2011, Comput. Mech. 48) the outlet gets the traction
+  β ρ/2 min(u·n, 0) u, which removes at least the convective energy influx for β ≥ 1 and is zero where
+  gas leaves. At a node it is the force −c_i u_i, c_i = β ρ/2 max(−q_i·B_i, 0)/ΔV_i (B_i = ∫φ_i n ds),
+  evaluated with q^n and added to the implicit diagonal like K (`backflow` = β, default 1; 0 = off).
 * **Pressure** (seed 001 eqs 37-39, YALES2 form): the gas carries the full −∇P, so the Poisson operator is
   the constant Laplacian L; with φ = Δt δP/ρ,  L φ = −(Dq* + ΔV (ε^{n+1} − ε^n)/Δt), D the Galerkin
   divergence. It includes the ∂ε/∂t source so that continuity holds node by node *in flux form*:
@@ -85,6 +92,7 @@ class VANSParameters:
     taylor_galerkin: bool = True
     pressure_rtol: float = 1e-8  # Poisson tolerance relative to ||b|| when no gas flows in
     mass_tolerance: float = 1e-6  # with inflow: Poisson stops when |mass imbalance| <= this x inflow
+    backflow: float = 1.0  # β of the outlet backflow stabilisation (0 switches it off)
     prefix: str = "febed_"
 
     def validate(self) -> None:
@@ -92,6 +100,8 @@ class VANSParameters:
         for name in ("density", "viscosity", "cfl", "fourier", "dt_min", "dt_max", "pressure_rtol", "mass_tolerance"):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"VANSParameters.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.backflow <= 10.0:
+            raise ValueError(f"VANSParameters.backflow must lie in [0, 10], got {self.backflow!r}")
         if self.les not in ("none", "smagorinsky"):
             raise ValueError(f"VANSParameters.les must be 'none' or 'smagorinsky', got {self.les!r}")
         if self.dt_min > self.dt_max:
@@ -225,6 +235,7 @@ class VANSSolver:
         apply_petsc_options(g.petsc_options)
         params = VANSParameters(
             taylor_galerkin=g.taylor_galerkin,
+            backflow=g.backflow,
             mass_tolerance=g.mass_tolerance,
             pressure_rtol=g.pressure_rtol,
             density=g.density,
@@ -460,12 +471,30 @@ class VANSSolver:
             ops.indptr, ops.indices, ops.grad, ops.tens, q, u, self.gp_owned, nu, par.density, hdt, self._rhs
         )
         q_star = self._scratch_vector.x.array.reshape(-1, self.gdim)
+        K = self._with_backflow(K)
         kernels.predictor_update(
             self.q, self._rhs, ops.mass, self.eps, K, Kv, force, self.g, par.density, dt, q_star[: self.n_owned]
         )
         self.bc.apply_velocity(q_star, self.t + dt)
         self._scratch_vector.x.scatter_forward()
         return q_star
+
+    def _with_backflow(self, K: np.ndarray) -> np.ndarray:
+        """K plus the outlet backflow coefficient c_i = β ρ/2 max(−q_i·B_i, 0)/ΔV_i at outlet nodes.
+
+        The force −c_i u_i is the nodal form of the traction β ρ/2 min(u·n, 0) u on the outlet (Moghadam
+        et al. 2011 style backflow stabilisation); see the module docstring.
+        """
+        rows = self._outlet_rows
+        if self.params.backflow == 0.0 or rows.size == 0:
+            return K
+        flux = np.einsum("ij,ij->i", self.ops.bnormal[rows], self.q[rows])  # outward, m^3/s
+        c = 0.5 * self.params.backflow * self.params.density * np.maximum(-flux, 0.0) / self.ops.mass[rows]
+        if not np.any(c > 0.0):
+            return K
+        K = K.copy()
+        K[rows] += c
+        return K
 
     def _solve_pressure(self, dt, eps_old, q_star) -> tuple[int, tuple[float, float, float, float]]:
         """Poisson equation for φ = Δt δP/ρ (seed 001 eq 39) and the pressure update; mass balance."""
