@@ -62,6 +62,15 @@ def _flatten(d: dict, prefix: str = "") -> dict[str, object]:
     return out
 
 
+def _is_default(key: str, value) -> bool:
+    """Whether `value` is the schema default of the top-level case key `section.name`."""
+    from febed.schema import SCHEMA
+
+    section, _, name = key.partition(".")
+    param = SCHEMA.get(section, {}).get(name)
+    return param is not None and value == param.default
+
+
 def case_changes(old_toml: str, new_toml: str) -> tuple[list[str], list[str]]:
     """Changed keys between two resolved cases, split into (accepted, refused) lines `key: old -> new`."""
     old, new = _flatten(tomllib.loads(old_toml)), _flatten(tomllib.loads(new_toml))
@@ -69,6 +78,8 @@ def case_changes(old_toml: str, new_toml: str) -> tuple[list[str], list[str]]:
     for key in sorted(set(old) | set(new)):
         a, b = old.get(key, "(unset)"), new.get(key, "(unset)")
         if a == b or key in ("output.directory", "run.name", "extends"):
+            continue
+        if a == "(unset)" and _is_default(key, b):  # a key febed gained since the checkpoint, at its default
             continue
         line = f"{key}: {a!r} -> {b!r}"
         (accepted if any(fnmatch(key, pat) for pat in CHANGEABLE) else refused).append(line)

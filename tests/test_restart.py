@@ -21,6 +21,7 @@ from febed.cli import main
 from febed.io.checkpoint import latest_valid, list_checkpoints, read_checkpoint, write_checkpoint
 from febed.io.probes import read_probes
 from febed.io.progress import Progress
+from febed.restart import case_changes
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE = ROOT / "demos" / "wang2d" / "wang2d.toml"
@@ -227,3 +228,14 @@ def test_progress_line_is_live_on_a_terminal_and_logged(tmp_path):
     assert tty.getvalue() == "\rt = 0.1 / 1 s" and pipe.getvalue() == ""
     assert "t = 0.1 / 1 s" in (tmp_path / "febed.log").read_text()
     assert "t = 0.2 / 1 s" in (tmp_path / "febed.log").read_text()
+
+
+def test_keys_added_since_the_checkpoint_at_their_default_are_not_changes():
+    old = "[gas]\ndensity = 1.2\n[run]\nend_time = 1.0\n"
+    new = "[gas]\ndensity = 1.2\nbackflow = 1.0\n[run]\nend_time = 2.0\n"
+    accepted, refused = case_changes(old, new)
+    assert accepted == ["run.end_time: 1.0 -> 2.0"] and refused == []
+    _, refused = case_changes(old, new.replace("backflow = 1.0", "backflow = 0.0").replace("1.2", "1.3"))
+    assert refused == ["gas.density: 1.2 -> 1.3"]
+    accepted, _ = case_changes(old, new.replace("backflow = 1.0", "backflow = 0.5"))
+    assert "gas.backflow: '(unset)' -> 0.5" in accepted
