@@ -47,7 +47,9 @@ class RunInfo:
         dim: 2 or 3 (gravity along -y in 2D, -z in 3D).
         lo, hi: the domain's bounding box (3,) in m.
         depth: extent along the averaged direction (3D: y; 2D: the case depth) in m.
-        rho_p, rho_g: particle and gas density (kg/m^3).
+        rho_p, rho_g: density of the simulated particles and of the gas (kg/m^3); for an SCG run (seed 003
+            eq 7) rho_p is the CG density ρ_O d_O²/d_CG², so that mass fluxes and the bed weight are those of
+            the simulated particles.
         d_p: particle diameter (m) of the case (original particles).
         u_f: inlet superficial velocity U_f (m/s); NaN if the case has no inlet.
         gravity: gravity magnitude (m/s^2).
@@ -168,13 +170,24 @@ def run_info(run_dir: str | Path, box: tuple | None = None) -> RunInfo:
         lo=lo,
         hi=hi,
         depth=depth,
-        rho_p=float(_get(case, "particles.density", 2500.0)),
+        rho_p=_particle_density(case),
         rho_g=float(_get(case, "gas.density", 1.2)),
         d_p=d_p,
         u_f=inlet_velocity(case),
         gravity=float(_get(case, "run.gravity", 9.81)),
         end_time=float(_get(case, "run.end_time", math.nan)),
     )
+
+
+def _particle_density(case: dict) -> float:
+    """Material density of the simulated particles (kg/m^3): the case's, or the SCG rule's (seed 003 eq 7)."""
+    rho = float(_get(case, "particles.density", 2500.0))
+    if _get(case, "coarse_grain.model", "none") == "scg":
+        from febed.coarse.scg import scg_particles
+
+        ratio = float(_get(case, "coarse_grain.ratio", 1.0))
+        return scg_particles(float(_get(case, "particles.diameter", 1e-3)), rho, ratio)[1]
+    return rho
 
 
 def list_snapshots(run_dir: str | Path, name: str = "particles") -> list[tuple[float, Path]]:

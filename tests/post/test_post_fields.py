@@ -284,3 +284,13 @@ def test_command_line(tmp_path, capsys):
     assert not list((run / "post").glob("*.png"))
     assert main([str(run), "--window", "5", "6"]) == 2
     assert "window" in capsys.readouterr().err
+
+
+def test_scg_run_uses_the_coarse_grain_density(tmp_path):
+    from febed.post.rundata import run_info
+
+    make_run(tmp_path / "r", [])
+    assert run_info(tmp_path / "r").rho_p == RHO_P
+    text = (tmp_path / "r" / "case.resolved.toml").read_text()
+    (tmp_path / "r" / "case.resolved.toml").write_text(text + '[coarse_grain]\nmodel = "scg"\nratio = 4.0\n')
+    assert run_info(tmp_path / "r").rho_p == pytest.approx(RHO_P / 16, rel=1e-14)  # ρ d²/(4 d)², seed 003 eq 7
