@@ -58,10 +58,13 @@ def test_bad_coarse_grain_settings_are_named():
         case(coarse_grain={"model": "pcpm", "ratio": 2.0}, contact={"model": "linear-history"})
 
 
-def test_coupled_pcpm_run_conserves_originals(tmp_path):
+@pytest.mark.mpi
+def test_coupled_pcpm_run_conserves_originals(mpi_tmp_path):
+    from mpi4py import MPI
+
+    tmp_path = mpi_tmp_path
     toml = tmp_path / "pcpm.toml"
-    toml.write_text(
-        """
+    text = """
 [run]
 end_time = 0.03
 [mesh]
@@ -91,7 +94,9 @@ ratio = 2.0
 [output]
 probe_interval = 2e-3
 """
-    )
+    if MPI.COMM_WORLD.rank == 0:
+        toml.write_text(text)
+    MPI.COMM_WORLD.Barrier()
     assert main(["run", str(toml), "--set", f"output.directory={tmp_path / 'out'}"]) == 0
     p = read_probes(tmp_path / "out" / "probes.csv")
     assert p["groups"][0] == 100 and set(p["originals"]) == {800.0}  # 100 groups of 8 originals, kept

@@ -26,6 +26,11 @@ Choices where the paper is silent (documented and tested):
   next crush test); the merged group sits at the centre of mass with the mass-weighted velocity (exact momentum,
   instead of eq 46's "v_i or v_j") and the spin of summed I ω; deferred if it would overlap beyond the tolerance.
 * Events in one pass never touch the same region (a later event intersecting an earlier one waits).
+* MPI: each rank evaluates its own groups; the other ranks' groups near the partition (ghosts) are obstacles in
+  the overlap checks and never take part in an event, so two groups on different ranks do not merge while they
+  are on different ranks. A group within two largest radii of a ghost takes part in events only on its rank's
+  turn (every `size`-th evaluation, by rank), so that two ranks never place groups in the same region in one
+  evaluation; it waits at most `size` evaluations (counted as conflicts).
 * Energy: each update reports the change of kinetic + elastic contact energy it caused (J): crushes keep the
   translational kinetic energy, lose some spin energy and add the elastic energy of tolerated overlaps; merges
   lose the (small) relative kinetic energy.
@@ -124,6 +129,7 @@ class GroupDynamics:
         self.measure_energy = bool(measure_energy)
         self.rng = np.random.default_rng(seed)
         self.calls = 0
+        self.evaluations = 0  # calls of `apply`: with MPI, whose turn it is at the partition
         self.total = EventStats()
         self._interval = EventStats()
 
@@ -171,7 +177,11 @@ class GroupDynamics:
         if n == 0 and ex is None:
             return stats
         e0 = self._energy(dem) if self.measure_energy else 0.0  # (collective with MPI)
-        if P.n_ghost:  # events see this rank's groups only (MPI): drop the ghost rows, keeping the history
+        n_all = n + P.n_ghost  # MPI: the other ranks' groups near the partition are obstacles, not events
+        pos, diam = np.ascontiguousarray(P.pos[:n_all]), np.ascontiguousarray(P.diameter[:n_all])
+        turn = ex is None or (self.evaluations % ex.comm.size) == ex.rank
+        self.evaluations += 1
+        if P.n_ghost:  # the ghost rows go (they are refreshed at the next step), the history is kept
             dem.save_history()
             P.n_ghost = 0
             dem.touch()
@@ -184,9 +194,9 @@ class GroupDynamics:
         counts = np.zeros(6, dtype=np.int64)
         W = dem.walls
         m = group_events(
-            np.ascontiguousarray(P.pos[:n]), np.ascontiguousarray(P.vel[:n]), np.ascontiguousarray(P.omega[:n]),
-            np.ascontiguousarray(P.diameter[:n]), np.ascontiguousarray(P.n_orig[:n]), n, self.d_orig,
-            dem.params.dim == 2, d_cl, self.crush, self.merge, self.max_group, self.merge_tol, self.tol, self.tries,
+            pos, np.ascontiguousarray(P.vel[:n]), np.ascontiguousarray(P.omega[:n]), diam,
+            np.ascontiguousarray(P.n_orig[:n]), n, n_all, turn, self.d_orig, dem.params.dim == 2, d_cl, self.crush,
+            self.merge, self.max_group, self.merge_tol, self.tol, self.tries,
             int(self.rng.integers(0, 2**31 - 1)), W.plane_p, W.plane_n, W.facets, W.nv, removed, new_pos, new_vel,
             new_omega, new_n, counts,
         )  # fmt: skip
@@ -222,13 +232,15 @@ class GroupDynamics:
 
     def state_dict(self) -> dict:
         """Restartable state (random generator, call count, totals) as plain Python values for a checkpoint."""
-        return {"rng": self.rng.bit_generator.state, "calls": self.calls, "total": vars(self.total).copy(),
+        return {"rng": self.rng.bit_generator.state, "calls": self.calls, "evaluations": self.evaluations,
+                "total": vars(self.total).copy(),
                 "interval": vars(self._interval).copy()}  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
         """Restore the state saved by `state_dict` (the group sizes themselves live in `Particles.n_orig`)."""
         self.rng.bit_generator.state = state["rng"]
         self.calls = int(state["calls"])
+        self.evaluations = int(state.get("evaluations", 0))
         self.total = EventStats(**state["total"])
         self._interval = EventStats(**state["interval"])
 

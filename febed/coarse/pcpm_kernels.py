@@ -224,11 +224,41 @@ def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, lo, h,
 
 
 @njit(cache=True)
+def _near_ghosts(pos, diam, n, lo, h, dims, head, nxt, rmax, out):
+    """Mark the rows i < n whose sphere comes within 2 rmax of a row j >= n (a ghost)."""
+    for i in range(n):
+        ri = 0.5 * diam[i]
+        reach = ri + 3.0 * rmax
+        i0 = _ci(pos[i, 0] - reach, lo[0], h, dims[0])
+        i1 = _ci(pos[i, 0] + reach, lo[0], h, dims[0])
+        j0 = _ci(pos[i, 1] - reach, lo[1], h, dims[1])
+        j1 = _ci(pos[i, 1] + reach, lo[1], h, dims[1])
+        k0 = _ci(pos[i, 2] - reach, lo[2], h, dims[2])
+        k1 = _ci(pos[i, 2] + reach, lo[2], h, dims[2])
+        for ci in range(i0, i1 + 1):
+            for cj in range(j0, j1 + 1):
+                for ck in range(k0, k1 + 1):
+                    j = head[(ci * dims[1] + cj) * dims[2] + ck]
+                    while j >= 0 and not out[i]:
+                        if j >= n:
+                            dx = pos[j, 0] - pos[i, 0]
+                            dy = pos[j, 1] - pos[i, 1]
+                            dz = pos[j, 2] - pos[i, 2]
+                            if dx * dx + dy * dy + dz * dz < (ri + 0.5 * diam[j] + 2.0 * rmax) ** 2:
+                                out[i] = True
+                        j = nxt[j]
+
+
+@njit(cache=True)
 def group_events(
-    pos, vel, omega, diam, n_orig, n, d_orig, dim2, d_cl, do_crush, do_merge, n_max, merge_tol, tol, tries, seed,
-    plane_p, plane_n, facets, nv, removed, new_pos, new_vel, new_omega, new_n, counts,
+    pos, vel, omega, diam, n_orig, n, n_all, turn, d_orig, dim2, d_cl, do_crush, do_merge, n_max, merge_tol, tol,
+    tries, seed, plane_p, plane_n, facets, nv, removed, new_pos, new_vel, new_omega, new_n, counts,
 ):  # fmt: skip
     """Crush and merge events of one evaluation over rows [0, n); returns the number of new groups written.
+
+    Rows [n, n_all) are another rank's groups (MPI ghosts): obstacles for the overlap checks, never part of an
+    event. Unless `turn`, a group within 2 largest radii of a ghost takes part in no event either (it waits
+    for this rank's turn, so that two ranks never place groups in the same region in one evaluation).
 
     Crushing (eqs 40-43): groups with d > d_cl split into `crush_sizes` children with the parent's velocity and
     spin, centres drawn uniformly in the parent's sphere (disk in 2D); for each child the best of `tries` draws
@@ -243,9 +273,12 @@ def group_events(
     """
     np.random.seed(seed)  # noqa: NPY002 (Numba supports only the legacy API)
     rmax = 0.0
-    for i in range(n):
+    for i in range(n_all):
         rmax = max(rmax, 0.5 * diam[i])
-    lo, h, dims, head, nxt = _grid(pos, n, max(2.0 * rmax, 1e-300))
+    lo, h, dims, head, nxt = _grid(pos, n_all, max(2.0 * rmax, 1e-300))
+    frozen = np.zeros(n, dtype=np.bool_)
+    if n_all > n and not turn:
+        _near_ghosts(pos, diam, n, lo, h, dims, head, nxt, rmax, frozen)
     ev = np.empty((n + 1, 4))  # event regions: centre, radius
     n_ev = 0
     m = 0
@@ -261,6 +294,9 @@ def group_events(
             break
         k, n_full, rem = crush_sizes(n_orig[i], diam[i], d_cl[i], d_orig)
         if n_full == 0:
+            continue
+        if frozen[i]:  # at the partition: waits for this rank's turn
+            counts[5] += 1
             continue
         R = 0.5 * diam[i]
         nk = n_full + 1
@@ -301,7 +337,7 @@ def group_events(
         counts[1] += nk
     # ------------------------------------------------------------------ merging (eqs 44-46)
     for i in range(n):
-        if not do_merge or removed[i]:
+        if not do_merge or removed[i] or frozen[i]:
             continue
         ri = 0.5 * diam[i]
         vi = math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
@@ -318,7 +354,7 @@ def group_events(
                 for ck in range(k0, k1 + 1):
                     j = head[(ci * dims[1] + cj) * dims[2] + ck]
                     while j >= 0 and not done:
-                        if j > i and not removed[j] and n_orig[i] + n_orig[j] <= n_max:
+                        if j > i and j < n and not removed[j] and not frozen[j] and n_orig[i] + n_orig[j] <= n_max:
                             rj = 0.5 * diam[j]
                             dx = pos[j, 0] - pos[i, 0]
                             dy = pos[j, 1] - pos[i, 1]

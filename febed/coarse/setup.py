@@ -30,13 +30,6 @@ class ParcelSpec:
     n_orig: int
 
 
-def case_ranks() -> int:
-    """Number of MPI ranks this process runs with."""
-    from mpi4py import MPI
-
-    return MPI.COMM_WORLD.size
-
-
 def check_case(case) -> list[str]:
     """Problems of a case's `[coarse_grain]` section (for `febed check` and the case loader)."""
     cg = case.coarse_grain
@@ -51,11 +44,6 @@ def check_case(case) -> list[str]:
         problems.append(
             f"[coarse_grain] model = 'pcpm' scales each contact by its groups' sizes with the 'linear' law: set "
             f"[contact] model = 'linear' (got {case.contact.model!r})"
-        )
-    if cg.model == "pcpm" and case_ranks() > 1:
-        problems.append(
-            "[coarse_grain] model = 'pcpm' runs on one process in this version (crush and merge see only a "
-            "rank's own groups and would place new ones on top of another rank's particles): run without mpirun"
         )
     if cg.model == "pcpm" and cg.eps_max <= cg.eps_mf:
         problems.append(f"[coarse_grain] eps_max = {cg.eps_max} must exceed eps_mf = {cg.eps_mf}")

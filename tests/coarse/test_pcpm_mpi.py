@@ -1,0 +1,75 @@
+"""PCPM crush and merge on distributed particles (serially and under `mpirun -n 2`).
+
+Groups packed in a box split into two z slabs, with events forced near the partition plane: the originals and
+the momentum are conserved over all ranks, gids stay unique, and no group placed by an event overlaps any
+other group (on any rank) beyond the tolerance — the other rank's groups are obstacles, and the two ranks take
+turns at the partition.
+"""
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+
+from febed.coarse.pcpm import NO_CRUSH, GroupDynamics
+from febed.dem import DEM, DEMParams, Walls
+from febed.dem.insertion import random_positions
+from febed.parallel import ParticleExchange, slab_partitioner
+
+pytestmark = pytest.mark.mpi
+COMM = MPI.COMM_WORLD
+DO, RHO, L, TOL = 1e-3, 2500.0, 0.012, 0.05
+
+
+def gathered(P):
+    """gid, pos, diameter, n_orig, momentum of every rank's owned groups."""
+    n = P.n_owned
+    parts = COMM.allgather((P.gid[:n], P.pos[:n], P.diameter[:n], P.n_orig[:n], P.mass[:n, None] * P.vel[:n]))
+    return [np.concatenate([p[k] for p in parts]) for k in range(5)]
+
+
+def test_events_across_the_partition_conserve_and_do_not_overlap():
+    import dolfinx.mesh as dm
+
+    lo, hi = np.zeros(3), np.array([L, L, 2 * L])  # the partition plane is z = L on 2 ranks
+    mesh = dm.create_box(COMM, [lo, hi], [2, 2, 4], dm.CellType.hexahedron, dm.GhostMode.shared_facet,
+                         slab_partitioner())  # fmt: skip
+    dem = DEM(DEMParams(gravity=0.0, kn=800.0, contact_model="linear"), walls=Walls.box(lo, hi))
+    rng = np.random.default_rng(11)
+    pos = random_positions(150, lo, hi, 2.1 * DO, seed=2)  # the same on every rank, then distributed
+    vel = np.array([0.2, 0.0, 0.0]) + 1e-4 * rng.normal(size=(150, 3))
+    dem.add_particles(pos, 2 * DO, RHO, vel=vel, n_orig=8)
+    dem.attach_exchange(ParticleExchange.from_mesh(mesh), distribute=True)
+    gd = GroupDynamics(DO, RHO, 1.2, 1.8e-5, 0.45, overlap_tolerance=TOL, merge_tolerance=1.0, max_group=16,
+                       measure_energy=False, seed=3 + COMM.rank)  # fmt: skip
+    P = dem.particles
+    gid0, _, _, n0, p0 = gathered(P)
+    crushed = merged = near = 0
+    for k in range(16):
+        dem.advance(2, dem.dt)  # refreshes the ghosts
+        old = set(P.gid[: P.n_owned].tolist())
+        p_before = gathered(P)[4].sum(axis=0)  # the walls change the momentum between evaluations, events do not
+        n = P.n_owned
+        at_plane = np.abs(P.pos[:n, 2] - L) < 3 * DO
+        crush = k % 4 < 2  # two crush evaluations, then two merge ones: each rank has a turn of each
+        want = at_plane & (P.n_orig[:n] > 1) if crush else np.zeros(n, bool)
+        s = gd.apply(dem, np.where(want, 1.3 * DO, NO_CRUSH if crush else 10 * DO))
+        crushed += COMM.allreduce(s.crushed)
+        merged += COMM.allreduce(s.merged)
+        n = P.n_owned
+        new = np.array([P.gid[i] not in old for i in range(n)], dtype=bool)
+        near += COMM.allreduce(int(np.sum(new & (np.abs(P.pos[:n, 2] - L) < 3 * DO))))
+        gid, x, d, no, mom = gathered(P)
+        is_new = np.concatenate(COMM.allgather(new))
+        assert np.unique(gid).size == gid.size  # no gid lost or duplicated
+        assert no.sum() == n0.sum()  # originals, exactly
+        assert np.allclose(mom.sum(axis=0), p_before, rtol=0, atol=1e-12 * np.abs(p0.sum(axis=0)).max())
+        rows = np.flatnonzero(is_new)
+        if rows.size:
+            r = 0.5 * d
+            dist = np.linalg.norm(x[rows][:, None] - x[None], axis=2)
+            dist[np.arange(rows.size), rows] = np.inf
+            worst = ((r[rows][:, None] + r[None] - dist) / (2 * np.minimum(r[rows][:, None], r[None]))).max()
+            assert worst <= TOL + 1e-12, f"evaluation {k}: a new group overlaps another by {worst:.3f} of a diameter"
+    assert crushed > 10 and merged > 5 and near > 10
+    assert gid0.size == 150
