@@ -63,6 +63,7 @@ parser.add_argument("--no-run", action="store_true", help="only plot the finishe
 args = parser.parse_args()
 end_time = args.end_time or (0.05 if args.quick else 1.0)
 OUT = HERE / ("runs-quick" if args.quick else "runs")
+OUT.mkdir(parents=True, exist_ok=True)
 FIG = OUT / "figures" if args.quick else HERE / "figures"  # the study's figures are committed
 FIG.mkdir(parents=True, exist_ok=True)
 
