@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from mpi4py import MPI
 
 import numpy as np
+from numba import njit
 
 from febed.coarse import setup as coarse
 from febed.coupling.exchange import Coupler
@@ -44,6 +45,20 @@ from febed.gas.pressure import PressureSolveError
 
 FLUID = "fluid"  # auxiliary particle array: K_p, F_D + F_P, v_p at the step start, F_P, valid flag
 FLUID_COLUMNS = 11
+
+
+@njit(cache=True)
+def _all_finite(a):
+    """True if every entry of the flat array `a` is finite (no NaN, no ±inf)."""
+    for x in a:
+        if not math.isfinite(x):
+            return False
+    return True
+
+
+def all_finite(a: np.ndarray) -> bool:
+    """True if every entry of `a` is finite: `np.isfinite(a).all()` in one pass without temporaries."""
+    return bool(_all_finite(np.ascontiguousarray(a, dtype=np.float64).reshape(-1)))
 
 
 class RunFailure(RuntimeError):
@@ -178,10 +193,8 @@ class CoupledSolver:
         formed in the current row order.
         """
         t0 = time.perf_counter()
-        K, _, _ = self.fluid_state(relocate=not self._located_now)
+        tau = self._fluid(relocate=not self._located_now)  # min_p m_p/K_p (inf without particles)
         P = self.dem.particles
-        n = P.n_owned
-        tau = float(np.min(P.mass[:n] / np.maximum(K, 1e-300))) if n else math.inf
         if self.md.comm.size > 1:  # every rank steps the same chunks (the DEM exchanges ghosts per step)
             tau = self.md.comm.allreduce(tau, op=MPI.MIN)
         ratio = dt / (0.1 * tau)
@@ -280,12 +293,12 @@ class CoupledSolver:
         P = self.dem.particles
         n = P.n_owned
         when = f"at t = {self.t:.6g} s (gas step {self.steps})"
-        if not (np.isfinite(P.pos[:n]).all() and np.isfinite(P.vel[:n]).all()):  # one pass while all is well
+        if not (all_finite(P.pos[:n]) and all_finite(P.vel[:n])):  # one pass while all is well
             bad = ~(np.isfinite(P.pos[:n]).all(axis=1) & np.isfinite(P.vel[:n]).all(axis=1))
             k = int(np.flatnonzero(bad)[0])
             return f"particle {int(P.gid[k])} has a non-finite position/velocity {when} (last cell {int(P.cell[k])})"
         for name, a in (("velocity u", self.gas.u), ("pressure p", self.gas.p)):
-            if np.isfinite(a).all():
+            if all_finite(a):
                 continue
             ok = np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
             if not ok.all():
@@ -335,32 +348,36 @@ class CoupledSolver:
         """Drag coefficient K_p (kg/s), drag F_D and pressure-gradient force F_P (N, 3) per owned particle.
 
         Locates the particles first (unless `relocate` is False: they have not moved since the last call);
-        one fused pass interpolates the current gas fields and applies the law.
+        one fused pass interpolates the current gas fields and applies the law (see `_fluid`).
+        """
+        self._fluid(relocate)
+        a = self.dem.particles.aux(FLUID)[: self.dem.particles.n_owned]
+        return a[:, 0].copy(), self.coupler.last_drag.copy(), a[:, 7:10].copy()
+
+    def _fluid(self, relocate: bool) -> float:
+        """Fill the FLUID record of every owned particle from the current gas; returns min m_p/K_p (s).
+
+        One fused kernel interpolates u, ε, ∇p, applies the drag law and writes K_p, F_D + F_P, v_p, F_P and
+        the valid flag (rows added later, e.g. by coarse-grain events, have 0: no coefficients yet).
         """
         if relocate:
             self.locate_particles()
             self._located_now = True
         gas = self.gas
-        d_orig, n_orig = self._originals()
-        v = self.dem.particles.vel[: self.dem.particles.n_owned]
-        K, f_d, f_p, _ = self.coupler.forces(gas.u, gas.eps, gas.grad_p, v, d_orig, n_orig)
-        a = self.dem.particles.attach(FLUID, FLUID_COLUMNS)[: v.shape[0]]
-        a[:, 0] = K
-        a[:, 1:4] = f_d + f_p
-        a[:, 4:7] = v
-        a[:, 7:10] = f_p
-        a[:, 10] = 1.0  # rows added later (e.g. coarse-grain events) have 0: no coefficients yet
-        return K, f_d, f_p
-
-    def _last_exchange(self):
-        """K_p and F_P the particles were given for this step, in the current row order (fresh if missing)."""
         P = self.dem.particles
         n = P.n_owned
-        if FLUID in P.aux_names and P.aux(FLUID)[:n, 10].all():
-            a = P.aux(FLUID)[:n]
-            return np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 7:10])
-        K, _, f_p = self.fluid_state(relocate=False)
-        return K, f_p
+        d_orig, n_orig = self._originals()
+        record = P.attach(FLUID, FLUID_COLUMNS)[:n]
+        return self.coupler.forces_into(gas.u, gas.eps, gas.grad_p, P.vel[:n], d_orig, n_orig, record, P.mass[:n])
+
+    def _last_exchange(self):
+        """K_p and F_P (views) the particles were given for this step, in the current row order (fresh if missing)."""
+        P = self.dem.particles
+        n = P.n_owned
+        if not (FLUID in P.aux_names and P.aux(FLUID)[:n, 10].all()):
+            self._fluid(relocate=False)
+        a = P.aux(FLUID)[:n]
+        return a[:, 0], a[:, 7:10]
 
     def project(self):
         """ε^{n+1} (with its floor), K_i [kg/(m^3 s)], K_i v̄_i and the explicit force density at the nodes.

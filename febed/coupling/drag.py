@@ -266,8 +266,29 @@ def _gas_forces(
     eps_p (N,). Same results as `interpolate` + `drag_kernel` + `pressure_gradient_kernel`, in one pass.
     Unlocated particles (cell < 0) get zero K, forces and ε.
     """
+    gas_forces_into(
+        law_id, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K,
+        F_d, F_p, eps_p, np.empty((0, 11)), np.empty(0),
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def gas_forces_into(
+    law_id, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
+    F_p, eps_p, aux, mass,
+):  # fmt: skip
+    """`_gas_forces`, also filling the solver's per-particle exchange record and returning min m_p/K_p (s).
+
+    If aux has N rows, row p gets [K_p, F_D + F_P (3), v_p (3), F_P (3), 1] (`febed.solver.FLUID`); if mass
+    (N,) kg is given, returns min_p m_p / max(K_p, 1e-300) (the shortest particle relaxation time τ_p; NaN if
+    any is NaN, inf without particles), else inf.
+    """
     nv = w.shape[1]
     g = u_nodes.shape[1]
+    with_aux = aux.shape[0] > 0
+    with_tau = mass.shape[0] > 0
+    tau = math.inf
+    nan_tau = False
     for p in range(cell.size):
         c = cell[p]
         if c < 0:
@@ -276,36 +297,51 @@ def _gas_forces(
             for a in range(3):
                 F_d[p, a] = 0.0
                 F_p[p, a] = 0.0
-            continue
-        u0 = u1 = u2 = 0.0
-        g0 = g1 = g2 = 0.0
-        e = 0.0
-        for i in range(nv):
-            wi = w[p, i]
-            dof = cell_dofs[c, i]
-            e += wi * eps_nodes[dof]
-            u0 += wi * u_nodes[dof, 0]
-            u1 += wi * u_nodes[dof, 1]
-            g0 += wi * gradp_nodes[dof, 0]
-            g1 += wi * gradp_nodes[dof, 1]
-            if g == 3:
-                u2 += wi * u_nodes[dof, 2]
-                g2 += wi * gradp_nodes[dof, 2]
-        eps_p[p] = e
-        s0 = u0 - v[p, 0]
-        s1 = u1 - v[p, 1]
-        s2 = u2 - v[p, 2]
-        k = 0.0
-        if e > 0.0:
-            k = n_orig[p] * law_value(law_id, e, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), d_orig[p], rho_g, mu_g)
-        K[p] = k
-        F_d[p, 0] = k * s0
-        F_d[p, 1] = k * s1
-        F_d[p, 2] = k * s2
-        vol = n_orig[p] * (math.pi / 6.0) * d_orig[p] ** 3 if with_pressure else 0.0
-        F_p[p, 0] = -vol * g0
-        F_p[p, 1] = -vol * g1
-        F_p[p, 2] = -vol * g2
+        else:
+            u0 = u1 = u2 = 0.0
+            g0 = g1 = g2 = 0.0
+            e = 0.0
+            for i in range(nv):
+                wi = w[p, i]
+                dof = cell_dofs[c, i]
+                e += wi * eps_nodes[dof]
+                u0 += wi * u_nodes[dof, 0]
+                u1 += wi * u_nodes[dof, 1]
+                g0 += wi * gradp_nodes[dof, 0]
+                g1 += wi * gradp_nodes[dof, 1]
+                if g == 3:
+                    u2 += wi * u_nodes[dof, 2]
+                    g2 += wi * gradp_nodes[dof, 2]
+            eps_p[p] = e
+            s0 = u0 - v[p, 0]
+            s1 = u1 - v[p, 1]
+            s2 = u2 - v[p, 2]
+            k = 0.0
+            if e > 0.0:
+                k = n_orig[p] * law_value(law_id, e, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), d_orig[p], rho_g, mu_g)
+            K[p] = k
+            F_d[p, 0] = k * s0
+            F_d[p, 1] = k * s1
+            F_d[p, 2] = k * s2
+            vol = n_orig[p] * (math.pi / 6.0) * d_orig[p] ** 3 if with_pressure else 0.0
+            F_p[p, 0] = -vol * g0
+            F_p[p, 1] = -vol * g1
+            F_p[p, 2] = -vol * g2
+        if with_aux:
+            aux[p, 0] = K[p]
+            for a in range(3):
+                aux[p, 1 + a] = F_d[p, a] + F_p[p, a]
+                aux[p, 4 + a] = v[p, a]
+                aux[p, 7 + a] = F_p[p, a]
+            aux[p, 10] = 1.0
+        if with_tau:
+            kk = K[p] if not K[p] < 1e-300 else 1e-300  # np.maximum: NaN stays NaN
+            r = mass[p] / kk
+            if r != r:
+                nan_tau = True
+            elif r < tau:
+                tau = r
+    return math.nan if nan_tau else tau
 
 
 def terminal_velocity(law, d: float, rho_p: float, rho_g: float, mu_g: float, g: float = 9.81, eps: float = 1.0):

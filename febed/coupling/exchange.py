@@ -20,11 +20,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from febed.coupling.drag import drag_forces, gas_forces_kernel, get_drag_law, pressure_gradient_kernel
+from febed.coupling.drag import (
+    drag_forces,
+    gas_forces_into,
+    gas_forces_kernel,
+    get_drag_law,
+    law_index,
+    pressure_gradient_kernel,
+)
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.mesh_arrays import NUM_VERTICES, MeshArrays
-from febed.coupling.projection import neighbour_filter, per_volume, project, solid_fraction
+from febed.coupling.projection import exchange_finish_kernel, exchange_project_kernel, filter_kernel
 from febed.coupling.weights import compute_weights
 
 
@@ -64,14 +71,20 @@ class Coupler:
     def __init__(self, ma: MeshArrays, drag: str, rho_g: float, mu_g: float, filter_passes: int = 1,
                  void_floor: float = 0.3, pressure_gradient: bool = True):  # fmt: skip
         """Set up for mesh arrays `ma`, drag law name, gas density (kg/m^3) and viscosity (Pa s)."""
+        if int(filter_passes) != filter_passes or filter_passes < 0:
+            raise ValueError(f"filter_passes: must be an integer >= 0, got {filter_passes!r}")
+        if not 0.0 <= void_floor <= 1.0:
+            raise ValueError(f"void_floor: the void-fraction floor must be in [0, 1], got {void_floor}")
         self.ma = ma
         self.law = get_drag_law(drag)
+        self.law_id = law_index(drag)
         self.rho_g, self.mu_g = float(rho_g), float(mu_g)
         self.filter_passes = int(filter_passes)
         self.void_floor = float(void_floor)
         self.pressure_gradient = bool(pressure_gradient)
         self.cell = np.full(0, -1, np.int32)
         self._resize(0)
+        self._nodal = {}  # columns -> two (nd, columns) scratch arrays for the projection and the filter
 
     def _resize(self, n: int) -> None:
         nv = NUM_VERTICES[self.ma.kind]
@@ -82,6 +95,7 @@ class Coupler:
         self.w = np.zeros((n, nv))
         self.status = np.zeros(n, np.int8)
         self.exit_facet = np.full(n, -1, np.int32)
+        self._K, self._F_d, self._F_p, self._eps_p = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
 
     def reset_cells(self, cell: np.ndarray | None = None) -> None:
         """Forget (or set) the particles' previous cells, e.g. after particles were added, removed or migrated."""
@@ -102,9 +116,9 @@ class Coupler:
         n = x.shape[0]
         if n != self.cell.size:
             self._resize(n)
-        locate(self.ma, x, self.cell, self.ref, self.status, self.exit_facet)
+        missing = locate(self.ma, x, self.cell, self.ref, self.status, self.exit_facet)[4]
         compute_weights(self.ma, self.ref, self.cell, self.w)
-        return np.nonzero(self.status != FOUND)[0]
+        return np.nonzero(self.status != FOUND)[0] if missing else np.zeros(0, np.int64)
 
     def gas_at_particles(self, u_nodes: np.ndarray, eps_nodes: np.ndarray, gradp_nodes: np.ndarray):
         """u_@p (N, 3) m/s, ε_@p (N,), ∇p_@p (N, 3) Pa/m from nodal u (nd, gdim), ε (nd,), ∇p (nd, gdim)."""
@@ -145,6 +159,27 @@ class Coupler:
         )  # fmt: skip
         return K, F_d, F_p, eps_p
 
+    def forces_into(self, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record, mass) -> float:
+        """`forces` writing each particle's exchange record instead of new arrays; returns min m_p/K_p (s).
+
+        Row p of `record` (N, 11) gets [K_p, F_D + F_P (3), v_p (3), F_P (3), 1] (the solver's per-particle
+        auxiliary array); mass (N,) kg gives the shortest relaxation time τ_p = m_p/K_p (NaN if any is NaN,
+        inf without particles). F_D (N, 3) of the call stays in `self.last_drag` until the next call.
+        """
+        n = self.cell.size
+        if record.shape != (n, 11) or mass.shape != (n,) or v.shape != (n, 3):
+            raise ValueError(f"record, mass, v: need shapes ({n}, 11), ({n},), ({n}, 3), got "
+                             f"{record.shape}, {mass.shape}, {v.shape}")  # fmt: skip
+        return gas_forces_into(
+            self.law_id, self.ma.cell_dofs, self.cell, self.w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig,
+            self.rho_g, self.mu_g, self.pressure_gradient, self._K, self._F_d, self._F_p, self._eps_p, record, mass,
+        )  # fmt: skip
+
+    @property
+    def last_drag(self) -> np.ndarray:
+        """Drag forces F_D (N, 3) N of the last `forces_into` call (a buffer it overwrites)."""
+        return self._F_d
+
     def project_to_gas(self, d_orig, n_orig, K, v, F_explicit=None, owned=None) -> NodalExchange:
         """Project solid volume, K, K v and an explicit particle force onto the nodes; filter; divide (collective).
 
@@ -160,18 +195,40 @@ class Coupler:
         g = ma.gdim
         cell = self.cell if owned is None else np.where(owned, self.cell, -1).astype(np.int32)
         n = cell.size
-        cols = 2 + g + (g if F_explicit is not None else 0)
-        vals = np.empty((n, cols))
-        vals[:, 0] = solid_volume(d_orig, n_orig)
-        vals[:, 1] = K
-        vals[:, 2 : 2 + g] = K[:, None] * v[:, :g]
-        if F_explicit is not None:
-            vals[:, 2 + g :] = -F_explicit[:, :g]  # the gas receives minus the particle force (eq 29)
-        nodal = neighbour_filter(ma, project(ma, cell, self.w, vals), self.filter_passes)
-        alpha, eps, clipped = solid_fraction(ma, np.ascontiguousarray(nodal[:, 0]), self.void_floor)
-        dens = per_volume(ma, nodal)
-        F = dens[:, 2 + g :] if F_explicit is not None else np.zeros((ma.num_dofs, g))
-        return NodalExchange(alpha, eps, clipped, np.ascontiguousarray(dens[:, 1]), dens[:, 2 : 2 + g].copy(), F.copy())
+        d3 = np.asarray(d_orig, dtype=np.float64) ** 3  # NumPy's power, as `solid_volume` (bit-identical)
+        n_orig = np.asarray(n_orig, dtype=np.float64)
+        K = np.asarray(K, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        F = np.zeros((0, 3)) if F_explicit is None else np.asarray(F_explicit, dtype=np.float64)
+        for name, a, shape in (("d_orig", d3, (n,)), ("n_orig", n_orig, (n,)), ("K", K, (n,)), ("v", v, (n, 3)),
+                               ("F_explicit", F, (n if F_explicit is not None else 0, 3))):  # fmt: skip
+            if a.shape != shape:
+                raise ValueError(f"{name}: must have shape {shape}, got {a.shape}")
+        cur, nxt = self._scratch(2 + g + (g if F_explicit is not None else 0))
+        exchange_project_kernel(ma.cell_dofs, cell, self.w, d3, n_orig, K, v, F, g, cur)
+        ma.accumulate(cur)
+        for _ in range(self.filter_passes):  # seed 001 eqs 31-34
+            nxt[:] = 0.0
+            filter_kernel(
+                ma.cell_dofs, ma.num_owned_cells, ma.cell_node_share, ma.cell_volume, ma.node_volume, cur, nxt
+            )
+            ma.accumulate(nxt)
+            cur, nxt = nxt, cur
+        nd = ma.num_dofs
+        alpha, eps, Ki, Kv, Fi = np.empty(nd), np.empty(nd), np.empty(nd), np.empty((nd, g)), np.empty((nd, g))
+        clipped = exchange_finish_kernel(
+            cur, ma.node_volume, self.void_floor, ma.num_owned_dofs, alpha, eps, Ki, Kv, Fi
+        )
+        if ma.parallel:
+            clipped = ma.comm.allreduce(clipped)
+        return NodalExchange(alpha, eps, int(clipped), Ki, Kv, Fi)
+
+    def _scratch(self, cols: int):
+        """Two (nd, cols) nodal arrays reused between calls (the projection and the filter's ping-pong)."""
+        s = self._nodal.get(cols)
+        if s is None:
+            s = self._nodal[cols] = (np.zeros((self.ma.num_dofs, cols)), np.zeros((self.ma.num_dofs, cols)))
+        return s
 
 
 def solid_volume(d_orig: np.ndarray, n_orig: np.ndarray) -> np.ndarray:

@@ -19,6 +19,8 @@ exact across the partition. Every particle must be projected by exactly one rank
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -70,6 +72,77 @@ def filter_kernel(cell_dofs, num_owned_cells, share, cell_volume, node_volume, e
             f = share[c, i] * inv
             for a in range(k):
                 out[dof, a] += f * acc[a]
+
+
+@njit(cache=True)
+def exchange_project_kernel(cell_dofs, cell, w, d3, n_orig, K, v, F, g, nodal):
+    """Zero `nodal` (nd, 2 + g [+ g]), then project [V_p, K_p, K_p v_p, -F_p] onto it (seed 001 eqs 27-30).
+
+    g is the geometric dimension; V_p = n_orig π d3 / 6 with d3 (N,) the cubed original diameters (m^3);
+    K (N,) kg/s; v (N, 3) m/s; if nodal has 2 + 2g columns, the explicit particle force F (N, 3) N, whose
+    reaction -F the gas receives.
+    The same sums, in the same order, as `project_kernel` on the stacked values (bit-identical).
+    """
+    nv = w.shape[1]
+    with_f = nodal.shape[1] == 2 + 2 * g
+    nodal[:, :] = 0.0
+    for p in range(cell.size):
+        c = cell[p]
+        if c < 0:
+            continue
+        vol = n_orig[p] * (math.pi / 6.0) * d3[p]
+        kp = K[p]
+        kv0 = kp * v[p, 0]
+        kv1 = kp * v[p, 1]
+        kv2 = kp * v[p, 2]
+        f0 = f1 = f2 = 0.0
+        if with_f:
+            f0 = -F[p, 0]
+            f1 = -F[p, 1]
+            f2 = -F[p, 2]
+        for i in range(nv):
+            wi = w[p, i]
+            dof = cell_dofs[c, i]
+            nodal[dof, 0] += wi * vol
+            nodal[dof, 1] += wi * kp
+            nodal[dof, 2] += wi * kv0
+            nodal[dof, 3] += wi * kv1
+            if g == 3:
+                nodal[dof, 4] += wi * kv2
+            if with_f:
+                nodal[dof, 2 + g] += wi * f0
+                nodal[dof, 3 + g] += wi * f1
+                if g == 3:
+                    nodal[dof, 4 + g] += wi * f2
+
+
+@njit(cache=True)
+def exchange_finish_kernel(nodal, node_volume, floor, num_owned, alpha, eps, K, Kv, F):
+    """Divide the filtered sums of `exchange_project_kernel` by ΔV_i: α_i, ε_i (floored), K_i, (K v)_i, F_i.
+
+    ε_i = min(1 - α_i, 1), raised to `floor` where below (seed 001 eq 30); F is zero without a force column.
+    Returns the number of owned nodes clipped. Same arithmetic as `solid_fraction` and `per_volume`.
+    """
+    g = Kv.shape[1]
+    with_f = nodal.shape[1] == 2 + 2 * g
+    clipped = 0
+    for i in range(nodal.shape[0]):
+        dv = node_volume[i]
+        a = nodal[i, 0] / dv
+        alpha[i] = a
+        e = 1.0 - a
+        if e > 1.0:  # round-off in the filter must not give ε > 1 (NaN stays NaN)
+            e = 1.0
+        if e < floor:
+            e = floor
+            if i < num_owned:
+                clipped += 1
+        eps[i] = e
+        K[i] = nodal[i, 1] / dv
+        for b in range(g):
+            Kv[i, b] = nodal[i, 2 + b] / dv
+            F[i, b] = nodal[i, 2 + g + b] / dv if with_f else 0.0
+    return clipped
 
 
 def _as2d(a: np.ndarray, n: int, name: str) -> np.ndarray:
