@@ -93,6 +93,14 @@ def _ci(x, lo, h, m):
 
 
 @njit(cache=True, inline="always")
+def _cell_range(x, y, z, reach, lo, h, dims):
+    """Index ranges (i0, i1, j0, j1, k0, k1) of the grid cells within `reach` of (x, y, z)."""
+    return (_ci(x - reach, lo[0], h, dims[0]), _ci(x + reach, lo[0], h, dims[0]),
+            _ci(y - reach, lo[1], h, dims[1]), _ci(y + reach, lo[1], h, dims[1]),
+            _ci(z - reach, lo[2], h, dims[2]), _ci(z + reach, lo[2], h, dims[2]))  # fmt: skip
+
+
+@njit(cache=True, inline="always")
 def _cell(x, y, z, lo, h, dims):
     return (_ci(x, lo[0], h, dims[0]) * dims[1] + _ci(y, lo[1], h, dims[1])) * dims[2] + _ci(z, lo[2], h, dims[2])
 
@@ -102,12 +110,7 @@ def _overlap_static(x, y, z, r, pos, diam, skip1, skip2, lo, h, dims, head, nxt,
     """Largest overlap / min(diameters) of a sphere (x, r) with the listed particles other than skip1, skip2."""
     reach = r + rmax
     worst = 0.0
-    i0 = _ci(x - reach, lo[0], h, dims[0])
-    i1 = _ci(x + reach, lo[0], h, dims[0])
-    j0 = _ci(y - reach, lo[1], h, dims[1])
-    j1 = _ci(y + reach, lo[1], h, dims[1])
-    k0 = _ci(z - reach, lo[2], h, dims[2])
-    k1 = _ci(z + reach, lo[2], h, dims[2])
+    i0, i1, j0, j1, k0, k1 = _cell_range(x, y, z, reach, lo, h, dims)
     for ci in range(i0, i1 + 1):
         for cj in range(j0, j1 + 1):
             for ck in range(k0, k1 + 1):
@@ -229,12 +232,7 @@ def _near_ghosts(pos, diam, n, lo, h, dims, head, nxt, rmax, out):
     for i in range(n):
         ri = 0.5 * diam[i]
         reach = ri + 3.0 * rmax
-        i0 = _ci(pos[i, 0] - reach, lo[0], h, dims[0])
-        i1 = _ci(pos[i, 0] + reach, lo[0], h, dims[0])
-        j0 = _ci(pos[i, 1] - reach, lo[1], h, dims[1])
-        j1 = _ci(pos[i, 1] + reach, lo[1], h, dims[1])
-        k0 = _ci(pos[i, 2] - reach, lo[2], h, dims[2])
-        k1 = _ci(pos[i, 2] + reach, lo[2], h, dims[2])
+        i0, i1, j0, j1, k0, k1 = _cell_range(pos[i, 0], pos[i, 1], pos[i, 2], reach, lo, h, dims)
         for ci in range(i0, i1 + 1):
             for cj in range(j0, j1 + 1):
                 for ck in range(k0, k1 + 1):
@@ -342,12 +340,7 @@ def group_events(
         ri = 0.5 * diam[i]
         vi = math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
         reach = ri + rmax
-        i0 = _ci(pos[i, 0] - reach, lo[0], h, dims[0])
-        i1 = _ci(pos[i, 0] + reach, lo[0], h, dims[0])
-        j0 = _ci(pos[i, 1] - reach, lo[1], h, dims[1])
-        j1 = _ci(pos[i, 1] + reach, lo[1], h, dims[1])
-        k0 = _ci(pos[i, 2] - reach, lo[2], h, dims[2])
-        k1 = _ci(pos[i, 2] + reach, lo[2], h, dims[2])
+        i0, i1, j0, j1, k0, k1 = _cell_range(pos[i, 0], pos[i, 1], pos[i, 2], reach, lo, h, dims)
         done = False
         for ci in range(i0, i1 + 1):
             for cj in range(j0, j1 + 1):
