@@ -56,6 +56,15 @@ def _all_finite(a):
     return True
 
 
+@njit(cache=True)
+def _all_set(a, j):
+    """True if column j of the 2D array `a` is nonzero in every row (`a[:, j].all()` without temporaries)."""
+    for i in range(a.shape[0]):
+        if a[i, j] == 0.0:
+            return False
+    return True
+
+
 def all_finite(a: np.ndarray) -> bool:
     """True if every entry of `a` is finite: `np.isfinite(a).all()` in one pass without temporaries."""
     return bool(_all_finite(np.ascontiguousarray(a, dtype=np.float64).reshape(-1)))
@@ -337,12 +346,12 @@ class CoupledSolver:
         return f" (now largest between particles {int(P.gid[a])} and {int(P.gid[b])} near {P.pos[a].tolist()} m)"
 
     def _originals(self):
-        """Diameter (m) and count of the original particles each particle stands for."""
+        """Diameter (m) and count (int64) of the original particles each particle stands for (views if plain)."""
         P = self.dem.particles
         n = P.n_owned
-        n_orig = P.n_orig[:n].astype(np.float64)
+        n_orig = P.n_orig[:n]
         d = P.diameter[:n]
-        return (d if n_orig.max(initial=1.0) == 1.0 else d / np.cbrt(n_orig)), n_orig
+        return (d if n_orig.max(initial=1) == 1 else d / np.cbrt(n_orig.astype(np.float64))), n_orig
 
     def fluid_state(self, relocate: bool = True):
         """Drag coefficient K_p (kg/s), drag F_D and pressure-gradient force F_P (N, 3) per owned particle.
@@ -374,7 +383,7 @@ class CoupledSolver:
         """K_p and F_P (views) the particles were given for this step, in the current row order (fresh if missing)."""
         P = self.dem.particles
         n = P.n_owned
-        if not (FLUID in P.aux_names and P.aux(FLUID)[:n, 10].all()):
+        if not (FLUID in P.aux_names and _all_set(P.aux(FLUID)[:n], 10)):
             self._fluid(relocate=False)
         a = P.aux(FLUID)[:n]
         return a[:, 0], a[:, 7:10]

@@ -196,7 +196,9 @@ class Coupler:
         cell = self.cell if owned is None else np.where(owned, self.cell, -1).astype(np.int32)
         n = cell.size
         d3 = np.asarray(d_orig, dtype=np.float64) ** 3  # NumPy's power, as `solid_volume` (bit-identical)
-        n_orig = np.asarray(n_orig, dtype=np.float64)
+        n_orig = np.asarray(n_orig)
+        if n_orig.dtype != np.int64:  # counts as int64 (the particles' own array) or float64
+            n_orig = n_orig.astype(np.float64)
         K = np.asarray(K, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
         F = np.zeros((0, 3)) if F_explicit is None else np.asarray(F_explicit, dtype=np.float64)
@@ -208,10 +210,7 @@ class Coupler:
         exchange_project_kernel(ma.cell_dofs, cell, self.w, d3, n_orig, K, v, F, g, cur)
         ma.accumulate(cur)
         for _ in range(self.filter_passes):  # seed 001 eqs 31-34
-            nxt[:] = 0.0
-            filter_kernel(
-                ma.cell_dofs, ma.num_owned_cells, ma.cell_node_share, ma.cell_volume, ma.node_volume, cur, nxt
-            )
+            filter_kernel(ma.cell_dofs, ma.num_owned_cells, *ma.filter_weights(), cur, nxt)
             ma.accumulate(nxt)
             cur, nxt = nxt, cur
         nd = ma.num_dofs

@@ -134,6 +134,18 @@ class MeshArrays:
         self.comm.Allreduce(np.atleast_1d(local), out, op=MPI.SUM)
         return out if nodal.ndim > 1 else float(out[0])
 
+    def filter_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """(gather, scatter), both (nc, nv): S_{K,j}/ΔV_j and S_{K,i}/|K| of the neighbour filter (cached).
+
+        Computed once with the divisions of the filter's formula (seed 001 eqs 31-34, `febed.coupling.projection`),
+        so a filter pass only multiplies and adds.
+        """
+        if "filter" not in self._vectors:
+            gather = self.cell_node_share / self.node_volume[self.cell_dofs]
+            scatter = self.cell_node_share * (1.0 / self.cell_volume)[:, None]
+            self._vectors["filter"] = (gather, scatter)
+        return self._vectors["filter"]
+
     def _vector(self, bs: int):
         if bs not in self._vectors:
             import dolfinx.la

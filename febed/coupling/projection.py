@@ -50,26 +50,27 @@ def project_kernel(cell_dofs, cell, w, values, nodal):
 
 
 @njit(cache=True)
-def filter_kernel(cell_dofs, num_owned_cells, share, cell_volume, node_volume, extensive, out):
+def filter_kernel(cell_dofs, num_owned_cells, gather, scatter, extensive, out):
     """One pass of the transposed neighbour filter on extensive nodal sums over owned cells (seed 001 eqs 31-34).
 
-    out[i] += Σ_{K∋i} (S_Ki/|K|) Σ_{j∈K} (S_Kj/ΔV_j) E_j; `out` must be zeroed by the caller.
+    out[i] = Σ_{K∋i} (S_Ki/|K|) Σ_{j∈K} (S_Kj/ΔV_j) E_j, with gather = S_Kj/ΔV_j and scatter = S_Ki/|K|
+    from `MeshArrays.filter_weights`; `out` is zeroed first.
     """
     nv = cell_dofs.shape[1]
     k = extensive.shape[1]
+    out[:, :] = 0.0
     acc = np.zeros(k)
     for c in range(num_owned_cells):
         for a in range(k):
             acc[a] = 0.0
         for j in range(nv):
             dof = cell_dofs[c, j]
-            f = share[c, j] / node_volume[dof]
+            f = gather[c, j]
             for a in range(k):
                 acc[a] += f * extensive[dof, a]
-        inv = 1.0 / cell_volume[c]
         for i in range(nv):
             dof = cell_dofs[c, i]
-            f = share[c, i] * inv
+            f = scatter[c, i]
             for a in range(k):
                 out[dof, a] += f * acc[a]
 
@@ -181,8 +182,8 @@ def neighbour_filter(ma: MeshArrays, extensive: np.ndarray, passes: int = 1) -> 
         raise ValueError(f"passes: must be an integer >= 0, got {passes!r}")
     cur = _as2d(extensive, ma.num_dofs, "extensive").copy()
     for _ in range(passes):
-        out = np.zeros_like(cur)
-        filter_kernel(ma.cell_dofs, ma.num_owned_cells, ma.cell_node_share, ma.cell_volume, ma.node_volume, cur, out)
+        out = np.empty_like(cur)
+        filter_kernel(ma.cell_dofs, ma.num_owned_cells, *ma.filter_weights(), cur, out)
         ma.accumulate(out)
         cur = out
     return cur.reshape(extensive.shape)
