@@ -359,15 +359,17 @@ class CoupledSolver:
         Locates the particles first (unless `relocate` is False: they have not moved since the last call);
         one fused pass interpolates the current gas fields and applies the law (see `_fluid`).
         """
-        self._fluid(relocate)
-        a = self.dem.particles.aux(FLUID)[: self.dem.particles.n_owned]
-        return a[:, 0].copy(), self.coupler.last_drag.copy(), a[:, 7:10].copy()
+        f_d = np.empty((self.dem.particles.n_owned, 3))
+        self._fluid(relocate, f_d)
+        a = self.dem.particles.aux(FLUID)[: f_d.shape[0]]
+        return a[:, 0].copy(), f_d, a[:, 7:10].copy()
 
-    def _fluid(self, relocate: bool) -> float:
+    def _fluid(self, relocate: bool, drag: np.ndarray | None = None) -> float:
         """Fill the FLUID record of every owned particle from the current gas; returns min m_p/K_p (s).
 
         One fused kernel interpolates u, ε, ∇p, applies the drag law and writes K_p, F_D + F_P, v_p, F_P and
-        the valid flag (rows added later, e.g. by coarse-grain events, have 0: no coefficients yet).
+        the valid flag (rows added later, e.g. by coarse-grain events, have 0: no coefficients yet); F_D goes
+        to `drag` (n_owned, 3) if given.
         """
         if relocate:
             self.locate_particles()
@@ -377,7 +379,8 @@ class CoupledSolver:
         n = P.n_owned
         d_orig, n_orig = self._originals()
         record = P.attach(FLUID, FLUID_COLUMNS)[:n]
-        return self.coupler.forces_into(gas.u, gas.eps, gas.grad_p, P.vel[:n], d_orig, n_orig, record, P.mass[:n])
+        u, eps, grad_p = gas.u, gas.eps, gas.grad_p
+        return self.coupler.forces_into(u, eps, grad_p, P.vel[:n], d_orig, n_orig, record, P.mass[:n], drag)
 
     def _last_exchange(self):
         """K_p and F_P (views) the particles were given for this step, in the current row order (fresh if missing)."""

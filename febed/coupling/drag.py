@@ -279,28 +279,28 @@ def gas_forces_into(
 ):  # fmt: skip
     """`_gas_forces`, also filling the solver's per-particle exchange record and returning min m_p/K_p (s).
 
+    Outputs with 0 rows are skipped (K, F_d, F_p, eps_p, aux: pass `np.empty((0, ...))` for those not wanted).
     If aux has N rows, row p gets [K_p, F_D + F_P (3), v_p (3), F_P (3), 1] (`febed.solver.FLUID`); if mass
     (N,) kg is given, returns min_p m_p / max(K_p, 1e-300) (the shortest particle relaxation time τ_p; NaN if
     any is NaN, inf without particles), else inf.
     """
     nv = w.shape[1]
     g = u_nodes.shape[1]
+    with_k = K.shape[0] > 0
+    with_fd = F_d.shape[0] > 0
+    with_fp = F_p.shape[0] > 0
+    with_eps = eps_p.shape[0] > 0
     with_aux = aux.shape[0] > 0
     with_tau = mass.shape[0] > 0
     tau = math.inf
     nan_tau = False
     for p in range(cell.size):
         c = cell[p]
-        if c < 0:
-            K[p] = 0.0
-            eps_p[p] = 0.0
-            for a in range(3):
-                F_d[p, a] = 0.0
-                F_p[p, a] = 0.0
-        else:
+        k = e = 0.0
+        fd0 = fd1 = fd2 = fp0 = fp1 = fp2 = 0.0
+        if c >= 0:
             u0 = u1 = u2 = 0.0
             g0 = g1 = g2 = 0.0
-            e = 0.0
             for i in range(nv):
                 wi = w[p, i]
                 dof = cell_dofs[c, i]
@@ -312,31 +312,44 @@ def gas_forces_into(
                 if g == 3:
                     u2 += wi * u_nodes[dof, 2]
                     g2 += wi * gradp_nodes[dof, 2]
-            eps_p[p] = e
             s0 = u0 - v[p, 0]
             s1 = u1 - v[p, 1]
             s2 = u2 - v[p, 2]
-            k = 0.0
             if e > 0.0:
                 k = n_orig[p] * law_value(law_id, e, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), d_orig[p], rho_g, mu_g)
-            K[p] = k
-            F_d[p, 0] = k * s0
-            F_d[p, 1] = k * s1
-            F_d[p, 2] = k * s2
+            fd0 = k * s0
+            fd1 = k * s1
+            fd2 = k * s2
             vol = n_orig[p] * (math.pi / 6.0) * d_orig[p] ** 3 if with_pressure else 0.0
-            F_p[p, 0] = -vol * g0
-            F_p[p, 1] = -vol * g1
-            F_p[p, 2] = -vol * g2
+            fp0 = -vol * g0
+            fp1 = -vol * g1
+            fp2 = -vol * g2
+        if with_k:
+            K[p] = k
+        if with_eps:
+            eps_p[p] = e
+        if with_fd:
+            F_d[p, 0] = fd0
+            F_d[p, 1] = fd1
+            F_d[p, 2] = fd2
+        if with_fp:
+            F_p[p, 0] = fp0
+            F_p[p, 1] = fp1
+            F_p[p, 2] = fp2
         if with_aux:
-            aux[p, 0] = K[p]
-            for a in range(3):
-                aux[p, 1 + a] = F_d[p, a] + F_p[p, a]
-                aux[p, 4 + a] = v[p, a]
-                aux[p, 7 + a] = F_p[p, a]
+            aux[p, 0] = k
+            aux[p, 1] = fd0 + fp0
+            aux[p, 2] = fd1 + fp1
+            aux[p, 3] = fd2 + fp2
+            aux[p, 4] = v[p, 0]
+            aux[p, 5] = v[p, 1]
+            aux[p, 6] = v[p, 2]
+            aux[p, 7] = fp0
+            aux[p, 8] = fp1
+            aux[p, 9] = fp2
             aux[p, 10] = 1.0
         if with_tau:
-            kk = K[p] if not K[p] < 1e-300 else 1e-300  # np.maximum: NaN stays NaN
-            r = mass[p] / kk
+            r = mass[p] / (k if not k < 1e-300 else 1e-300)  # np.maximum(K, 1e-300): NaN stays NaN
             if r != r:
                 nan_tau = True
             elif r < tau:

@@ -34,6 +34,8 @@ from febed.coupling.mesh_arrays import NUM_VERTICES, MeshArrays
 from febed.coupling.projection import exchange_finish_kernel, exchange_project_kernel, filter_kernel
 from febed.coupling.weights import compute_weights
 
+_NONE1, _NONE3 = np.empty(0), np.empty((0, 3))  # outputs `gas_forces_into` skips
+
 
 @dataclass
 class NodalExchange:
@@ -95,7 +97,6 @@ class Coupler:
         self.w = np.zeros((n, nv))
         self.status = np.zeros(n, np.int8)
         self.exit_facet = np.full(n, -1, np.int32)
-        self._K, self._F_d, self._F_p, self._eps_p = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
 
     def reset_cells(self, cell: np.ndarray | None = None) -> None:
         """Forget (or set) the particles' previous cells, e.g. after particles were added, removed or migrated."""
@@ -159,26 +160,22 @@ class Coupler:
         )  # fmt: skip
         return K, F_d, F_p, eps_p
 
-    def forces_into(self, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record, mass) -> float:
+    def forces_into(self, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record, mass, drag=None) -> float:
         """`forces` writing each particle's exchange record instead of new arrays; returns min m_p/K_p (s).
 
         Row p of `record` (N, 11) gets [K_p, F_D + F_P (3), v_p (3), F_P (3), 1] (the solver's per-particle
         auxiliary array); mass (N,) kg gives the shortest relaxation time τ_p = m_p/K_p (NaN if any is NaN,
-        inf without particles). F_D (N, 3) of the call stays in `self.last_drag` until the next call.
+        inf without particles); `drag` (N, 3), if given, receives F_D (N).
         """
         n = self.cell.size
-        if record.shape != (n, 11) or mass.shape != (n,) or v.shape != (n, 3):
-            raise ValueError(f"record, mass, v: need shapes ({n}, 11), ({n},), ({n}, 3), got "
-                             f"{record.shape}, {mass.shape}, {v.shape}")  # fmt: skip
+        drag = _NONE3 if drag is None else drag
+        if record.shape != (n, 11) or mass.shape != (n,) or v.shape != (n, 3) or drag.shape[0] not in (0, n):
+            raise ValueError(f"record, mass, v, drag: need shapes ({n}, 11), ({n},), ({n}, 3), ({n}, 3), got "
+                             f"{record.shape}, {mass.shape}, {v.shape}, {drag.shape}")  # fmt: skip
         return gas_forces_into(
             self.law_id, self.ma.cell_dofs, self.cell, self.w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig,
-            self.rho_g, self.mu_g, self.pressure_gradient, self._K, self._F_d, self._F_p, self._eps_p, record, mass,
+            self.rho_g, self.mu_g, self.pressure_gradient, _NONE1, drag, _NONE3, _NONE1, record, mass,
         )  # fmt: skip
-
-    @property
-    def last_drag(self) -> np.ndarray:
-        """Drag forces F_D (N, 3) N of the last `forces_into` call (a buffer it overwrites)."""
-        return self._F_d
 
     def project_to_gas(self, d_orig, n_orig, K, v, F_explicit=None, owned=None) -> NodalExchange:
         """Project solid volume, K, K v and an explicit particle force onto the nodes; filter; divide (collective).
