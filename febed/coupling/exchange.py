@@ -32,7 +32,6 @@ from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.mesh_arrays import NUM_VERTICES, MeshArrays
 from febed.coupling.projection import exchange_finish_kernel, exchange_project_kernel, filter_kernel
-from febed.coupling.weights import compute_weights
 
 _NONE1, _NONE3 = np.empty(0), np.empty((0, 3))  # outputs `gas_forces_into` skips
 
@@ -117,8 +116,7 @@ class Coupler:
         n = x.shape[0]
         if n != self.cell.size:
             self._resize(n)
-        missing = locate(self.ma, x, self.cell, self.ref, self.status, self.exit_facet)[4]
-        compute_weights(self.ma, self.ref, self.cell, self.w)
+        missing = locate(self.ma, x, self.cell, self.ref, self.status, self.exit_facet, w=self.w)[4]
         return np.nonzero(self.status != FOUND)[0] if missing else np.zeros(0, np.int64)
 
     def gas_at_particles(self, u_nodes: np.ndarray, eps_nodes: np.ndarray, gradp_nodes: np.ndarray):

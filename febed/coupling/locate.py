@@ -18,7 +18,15 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from febed.coupling.mesh_arrays import NBR_DOMAIN_BOUNDARY, QUADRILATERAL, TETRAHEDRON, TRIANGLE, MeshArrays
+from febed.coupling.mesh_arrays import (
+    NBR_DOMAIN_BOUNDARY,
+    NUM_VERTICES,
+    QUADRILATERAL,
+    TETRAHEDRON,
+    TRIANGLE,
+    MeshArrays,
+)
+from febed.coupling.weights import fill_weights
 
 FOUND, OUTSIDE_DOMAIN, OUTSIDE_LOCAL = 0, 1, 2
 INSIDE_TOL = 1e-10  # tolerance on reference coordinates for "inside"
@@ -277,12 +285,14 @@ def _nearest_start(origin, h, n, start, cells, px, py, pz):
 @njit(cache=True)
 def locate_kernel(
     kind, gdim, cell_dofs, x_dofs, affine, cell_nbr, cell_facets, bbox, origin, h, n, start, cells, x, cell, ref,
-    status, exit_facet, max_steps,
+    status, exit_facet, max_steps, w,
 ):  # fmt: skip
     """Locate points x (N, 3) starting from `cell` (in/out, -1 = unknown); fill ref, status, exit_facet.
 
-    Returns the number of points not found in the local mesh.
+    If w has N rows, also fills the node weights (`febed.coupling.weights`, zero where not found). Returns the
+    number of points not found in the local mesh.
     """
+    with_w = w.shape[0] > 0
     nc = cell_dofs.shape[0]
     simplex = kind == TRIANGLE or kind == TETRAHEDRON
     missing = 0
@@ -352,10 +362,15 @@ def locate_kernel(
             ref[p, 0] = r0
             ref[p, 1] = r1
             ref[p, 2] = r2
+            if with_w:
+                fill_weights(kind, r0, r1, r2, w, p)
         else:
             missing += 1
             cell[p] = -1
             ref[p, 0] = ref[p, 1] = ref[p, 2] = 0.0
+            if with_w:
+                for k in range(w.shape[1]):
+                    w[p, k] = 0.0
             if last_c >= 0 and cell_nbr[last_c, last_f] == NBR_DOMAIN_BOUNDARY:
                 status[p] = OUTSIDE_DOMAIN
                 exit_facet[p] = cell_facets[last_c, last_f]
@@ -373,12 +388,14 @@ def locate(
     status: np.ndarray | None = None,
     exit_facet: np.ndarray | None = None,
     max_steps: int = 200,
+    w: np.ndarray | None = None,
 ):
     """Locate particle centres x (N, 3) (m) in the local mesh, walking from `cell` (N,) int32 (-1 = unknown).
 
     `cell` is updated in place (-1 where not found). Returns (cell, ref (N, 3) reference coordinates,
     status (N,) int8 in {FOUND, OUTSIDE_DOMAIN, OUTSIDE_LOCAL}, exit_facet (N,) int32 local facet or -1,
-    number not found). Output arrays may be passed in to avoid allocation.
+    number not found). Output arrays may be passed in to avoid allocation; `w` (N, nv), if given, receives
+    the node weights as from `compute_weights` (in the same pass).
     """
     x = np.asarray(x)
     if x.ndim != 2 or x.shape[1] != 3 or x.dtype != np.float64:
@@ -389,9 +406,15 @@ def locate(
     ref = np.zeros((n, 3)) if ref is None else ref
     status = np.zeros(n, dtype=np.int8) if status is None else status
     exit_facet = np.full(n, -1, dtype=np.int32) if exit_facet is None else exit_facet
+    nv = NUM_VERTICES[ma.kind]
+    if w is None:
+        w = np.empty((0, nv))
+    elif w.shape != (n, nv) or w.dtype != np.float64:
+        raise ValueError(f"w: must be a float64 array of shape ({n}, {nv}), got {w.dtype} {w.shape}")
     missing = locate_kernel(
         ma.kind, ma.gdim, ma.cell_dofs, ma.x_dofs, ma.cell_affine, ma.cell_nbr, ma.cell_facets, ma.bbox,
         ma.grid_origin, ma.grid_h, ma.grid_n, ma.grid_start, ma.grid_cells, x, cell, ref, status, exit_facet, max_steps,
+        w,
     )  # fmt: skip
     return cell, ref, status, exit_facet, int(missing)
 

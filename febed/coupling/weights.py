@@ -12,6 +12,31 @@ from numba import njit
 from febed.coupling.mesh_arrays import NUM_VERTICES, QUADRILATERAL, TETRAHEDRON, TRIANGLE, MeshArrays
 
 
+@njit(cache=True, inline="always")
+def fill_weights(kind, xi, eta, zeta, w, p):
+    """Row p of w: the P1/Q1 basis values at reference coordinates (ξ, η, ζ) (seed 001 eq 28)."""
+    if kind == TRIANGLE:  # barycentric
+        w[p, 0] = 1.0 - xi - eta
+        w[p, 1] = xi
+        w[p, 2] = eta
+    elif kind == TETRAHEDRON:
+        w[p, 0] = 1.0 - xi - eta - zeta
+        w[p, 1] = xi
+        w[p, 2] = eta
+        w[p, 3] = zeta
+    elif kind == QUADRILATERAL:  # bilinear, vertex k at bits of k
+        w[p, 0] = (1.0 - xi) * (1.0 - eta)
+        w[p, 1] = xi * (1.0 - eta)
+        w[p, 2] = (1.0 - xi) * eta
+        w[p, 3] = xi * eta
+    else:  # trilinear
+        for k in range(8):
+            a = xi if k & 1 else 1.0 - xi
+            b = eta if (k >> 1) & 1 else 1.0 - eta
+            c = zeta if (k >> 2) & 1 else 1.0 - zeta
+            w[p, k] = a * b * c
+
+
 @njit(cache=True)
 def weights_kernel(kind, ref, cell, w):
     """Fill w (N, nv) with the P1/Q1 basis values at reference coordinates ref (N, 3); zero where cell < 0."""
@@ -20,28 +45,8 @@ def weights_kernel(kind, ref, cell, w):
         if cell[p] < 0:
             for k in range(nv):
                 w[p, k] = 0.0
-            continue
-        xi, eta, zeta = ref[p, 0], ref[p, 1], ref[p, 2]
-        if kind == TRIANGLE:  # seed 001 eq 28, barycentric
-            w[p, 0] = 1.0 - xi - eta
-            w[p, 1] = xi
-            w[p, 2] = eta
-        elif kind == TETRAHEDRON:
-            w[p, 0] = 1.0 - xi - eta - zeta
-            w[p, 1] = xi
-            w[p, 2] = eta
-            w[p, 3] = zeta
-        elif kind == QUADRILATERAL:  # bilinear, vertex k at bits of k
-            w[p, 0] = (1.0 - xi) * (1.0 - eta)
-            w[p, 1] = xi * (1.0 - eta)
-            w[p, 2] = (1.0 - xi) * eta
-            w[p, 3] = xi * eta
-        else:  # trilinear
-            for k in range(8):
-                a = xi if k & 1 else 1.0 - xi
-                b = eta if (k >> 1) & 1 else 1.0 - eta
-                c = zeta if (k >> 2) & 1 else 1.0 - zeta
-                w[p, k] = a * b * c
+        else:
+            fill_weights(kind, ref[p, 0], ref[p, 1], ref[p, 2], w, p)
 
 
 def compute_weights(ma: MeshArrays, ref: np.ndarray, cell: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:

@@ -39,6 +39,10 @@ def test_locate_matches_brute_force(name):
     assert np.max(np.abs(ref[found] - rb[found])) < 1e-10
     w = compute_weights(ma, ref, cell)
     assert np.max(np.abs(_map_back(ma, cell[found], w[found]) - pts[found])) < 1e-12 * 0.1
+    # the weights filled in the same pass as the walk are those of `compute_weights`, bit for bit (zero if missed)
+    w_walk = np.full_like(w, np.nan)
+    locate(ma, pts, np.full(len(pts), -1, np.int32), w=w_walk)
+    assert np.array_equal(w_walk, w) and np.all(w_walk[~found] == 0.0)
 
     # move the particles a bit and walk from the previous cell
     rng = np.random.default_rng(2)
