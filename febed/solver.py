@@ -173,7 +173,7 @@ class CoupledSolver:
         self.n_sub = max(1, math.ceil(dt / self.dem.dt * (1 - 1e-12)))
         if self.fixed:  # the particles do not move, but the gas they see does: their K_p, F_P for this step
             t0 = time.perf_counter()
-            self.fluid_state(relocate=not self._located_now)
+            self._fluid(relocate=not self._located_now)
             self.timers.coupling += time.perf_counter() - t0
         else:
             self.advance_particles(dt, self.n_sub)  # times itself (DEM / coupling)

@@ -1,11 +1,15 @@
-"""Coupling steps for the time loop (a sketch for `febed/solver.py`; DESIGN.md "Data flow", seed 001 §2.3-2.4).
+"""Coupling steps for the time loop (`febed/solver.py`; DESIGN.md "Data flow", seed 001 §2.3-2.4).
 
-Per DEM sub-step (gas fields of step n frozen):
-    `Coupler.locate(x)`            -> cells, weights; particles outside the local mesh reported
-    `Coupler.gas_at_particles(...)`-> u_@p, ε_@p, ∇p_@p (seed 001 eq 28)
-    `Coupler.particle_forces(...)` -> K_p (kg/s), F_D = K_p (u_@p - v_p), F_P = -V_p ∇p_@p (seed 001 eqs 20, 27)
+At the start of a gas step (gas fields of step n frozen over its DEM sub-steps):
+    `Coupler.locate(x)`            -> cells and weights (one pass); particles outside the local mesh reported
+    `Coupler.forces_into(...)`     -> one fused pass: u_@p, ε_@p, ∇p_@p (seed 001 eq 28), K_p (kg/s),
+                                      F_D = K_p (u_@p - v_p), F_P = -V_p ∇p_@p (eqs 20, 27) into each particle's
+                                      record, and min m_p/K_p
+    (`gas_at_particles`, `particle_forces`, `forces`: the same in separate steps / new arrays, for tests and
+    the coarse-graining criteria)
 Once per gas step, after the sub-steps:
-    `Coupler.project_to_gas(...)`  -> α_p, ε (floored), K_i/ΔV_i, (K v)_i/ΔV_i, F_i/ΔV_i (eqs 29-34)
+    `Coupler.project_to_gas(...)`  -> α_p, ε (floored), K_i/ΔV_i, (K v)_i/ΔV_i, F_i/ΔV_i (eqs 29-34): projection,
+                                      filter passes and division by ΔV_i in kernels on reused nodal arrays
 
 The gas momentum source at node i is then -K_i/ΔV_i u_i + (K v)_i/ΔV_i (implicit in u: the predictor's
 diagonal gets + K_i/ΔV_i) plus the explicit force density F_i/ΔV_i the gas receives, the projection of -F_P

@@ -5,6 +5,7 @@ import pytest
 from _coupling_meshes import mesh_and_arrays, random_points
 
 from febed.coupling.exchange import Coupler, solid_volume
+from febed.coupling.projection import neighbour_filter, per_volume, project, solid_fraction
 
 
 @pytest.mark.mpi
@@ -48,3 +49,49 @@ def test_coupler_third_law(name):
     assert np.allclose(F_d2, F_d, rtol=1e-12, atol=1e-14 * np.abs(F_d).max())
     assert np.allclose(F_p2, F_p, rtol=1e-12, atol=1e-14 * np.abs(F_p).max())
     assert np.allclose(eps2, eps_p, rtol=1e-14, atol=0)
+
+    # the solver's path: the same kernel writing each particle's record, and the shortest relaxation time
+    record = np.zeros((n, 11))
+    mass = rng.uniform(1e-6, 2e-6, n)
+    drag = np.empty((n, 3))
+    tau = cp.forces_into(u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record, mass, drag)
+    assert np.array_equal(record[:, 0], K2) and np.array_equal(record[:, 1:4], F_d2 + F_p2)
+    assert np.array_equal(record[:, 4:7], v) and np.array_equal(record[:, 7:10], F_p2)
+    assert np.all(record[:, 10] == 1.0) and np.array_equal(drag, F_d2)
+    assert tau == np.min(mass / np.maximum(K2, 1e-300))
+    with pytest.raises(ValueError, match="record"):
+        cp.forces_into(u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record[:, :10], mass)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("name", ["quad", "tet-unstructured"])
+@pytest.mark.parametrize("passes", [0, 2])
+def test_project_to_gas_equals_the_step_by_step_functions(name, passes):
+    """project_to_gas (kernels on reused arrays) gives bit for bit what project, the filter and the division give."""
+    _, ma = mesh_and_arrays(name)
+    g = ma.gdim
+    n = 400
+    x = random_points(ma, n, seed=31)
+    rng = np.random.default_rng(32)
+    floor = 0.9  # clips some nodes
+    cp = Coupler(ma, "wen-yu", rho_g=1.2, mu_g=1.8e-5, filter_passes=passes, void_floor=floor)
+    cp.locate(x)
+    d_orig = rng.uniform(2e-3, 4e-3, n)
+    n_orig = rng.integers(1, 4, n)
+    K = rng.uniform(1e-5, 2e-5, n)
+    v = rng.normal(0.0, 0.2, (n, 3))
+    F = rng.normal(0.0, 1e-4, (n, 3))
+    owned = (cp.cell >= 0) & (cp.cell < ma.num_owned_cells)
+    cell = np.where(owned, cp.cell, -1).astype(np.int32)
+    for F_explicit in (F, None):
+        for counts in (n_orig, n_orig.astype(float)):
+            ex = cp.project_to_gas(d_orig, counts, K, v, F_explicit=F_explicit, owned=owned)
+            cols = [solid_volume(d_orig, counts.astype(float)), K, *(K * v[:, a] for a in range(g))]
+            cols += [-F_explicit[:, a] for a in range(g)] if F_explicit is not None else []
+            nodal = neighbour_filter(ma, project(ma, cell, cp.w, np.stack(cols, axis=1)), passes)
+            alpha, eps, clipped = solid_fraction(ma, np.ascontiguousarray(nodal[:, 0]), floor)
+            dens = per_volume(ma, nodal)
+            assert clipped > 0 and ex.clipped == clipped
+            assert np.array_equal(ex.alpha, alpha) and np.array_equal(ex.eps, eps)
+            assert np.array_equal(ex.K, dens[:, 1]) and np.array_equal(ex.Kv, dens[:, 2 : 2 + g])
+            assert np.array_equal(ex.F, dens[:, 2 + g :] if F_explicit is not None else np.zeros((ma.num_dofs, g)))
