@@ -244,6 +244,14 @@ SCHEMA: dict[str, dict[str, Param]] = {
             lo=0.0,
             lo_open=True,
         ),
+        "pack_restitution": Param(
+            0.0,
+            "-",
+            "restitution of all contacts while a missing bed is packed (quicker settling); 0: the case's own",
+            float,
+            lo=0.0,
+            hi=1.0,
+        ),
         "settle_max_time": Param(
             10.0, "s", "packing a bed stops after this much simulated time at most", float, lo=0.0, lo_open=True
         ),

@@ -6,7 +6,8 @@ particles). Without any `[gas.boundary]` table every tagged boundary is a wall. 
 mesh's bounding box (through an open outlet) are removed and counted in the log.
 
 The bed: `[particles] bed_file` is loaded if it exists; if it does not and `pack_if_missing`, particles are
-inserted, settled to `settle_energy` and saved there, and the run starts from the packed bed. Without a
+inserted, settled to `settle_energy` (with every contact's restitution set to `pack_restitution`, if given,
+for a quicker settling) and saved there, and the run starts from the packed bed. Without a
 bed file the inserted particles are simply released at t = 0 (a pour).
 
 With MPI (`mpirun -n N febed run`), every rank loads or inserts the same bed, then keeps the particles whose
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from mpi4py import MPI
@@ -176,6 +178,10 @@ def build_dem(case, md, log, exchange=None) -> DEM:
     if bed_path is not None and not p.pack_if_missing:
         raise ValueError(f"[particles] bed_file {bed_path} does not exist and pack_if_missing = false")
     dem = dem_from_case(case, walls, dim, Particles())
+    if bed_path is not None and p.pack_restitution > 0:  # packing only: the run itself uses the case's e
+        e = p.pack_restitution
+        dem = DEM(replace(dem.params, restitution_pp=e, restitution_pw=e), particles=dem.particles, walls=walls)
+        coarse.configure_dem(case, dem)
     spec = coarse.parcels(case, original_count(case), dim)
     pos = insert_in_mesh(case, md, walls, dim, spec.count, spec.diameter)
     dem.add_particles(pos, spec.diameter, spec.density, n_orig=spec.n_orig)
@@ -184,7 +190,8 @@ def build_dem(case, md, log, exchange=None) -> DEM:
     cg = f", {case.coarse_grain.model} l = {case.coarse_grain.ratio:g}" if case.coarse_grain.model != "none" else ""
     log.info(f"inserted {pos.shape[0]} particles of {spec.diameter:g} m ({p.insertion}{cg}); DEM step {dem.dt:.3e} s")
     if bed_path is not None:
-        log.info(f"packing the bed until the mean kinetic energy < {p.settle_energy:g} J ...")
+        e = f", restitution {p.pack_restitution:g} while packing" if p.pack_restitution > 0 else ""
+        log.info(f"packing the bed until the mean kinetic energy < {p.settle_energy:g} J{e} ...")
         t = settle(dem, p.settle_energy, max_time=p.settle_max_time, log=log)
         everyone = gather_particles(dem)
         if md.comm.rank == 0:

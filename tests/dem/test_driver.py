@@ -80,6 +80,27 @@ def test_bed_file_packed_once_then_loaded(tmp_path):
     assert dem.particles.pos[:, 2].max() < 0.02  # the packed bed lies at the bottom
 
 
+def test_pack_restitution_applies_to_the_packing_only(tmp_path):
+    """A bed packed with pack_restitution = 0.3 is the bed a case with e = 0.3 packs; the run keeps e = 0.97."""
+    from febed.dem.driver import run
+
+    beds = {}
+    runs = [("damped", "restitution_pp = 0.3\nrestitution_pw = 0.3", ""),
+            ("case", "restitution_pp = 0.97\nrestitution_pw = 0.97", "pack_restitution = 0.3")]  # fmt: skip
+    for name, contact, particles in runs:
+        extra = f'bed_file = "{name}.npz"\nsettle_energy = 2e-8\n{particles}'
+        text = CASE.format(out=tmp_path / name, extra=extra)
+        text = text.replace("0.01, 0.02, 0.02, 0.06]", "0.003, 0.02, 0.02, 0.02]").replace(
+            "end_time = 0.02", "end_time = 1e-3"
+        )
+        text = text.replace("stiffness = 1e5", f"stiffness = 1e5\n{contact}")
+        (tmp_path / f"{name}.toml").write_text(text)
+        dem = run(load_case(tmp_path / f"{name}.toml"), tmp_path / name, logging.getLogger("test"))
+        beds[name] = np.load(tmp_path / f"{name}.npz")["pos"]
+        assert dem.params.restitution_pp == dem.params.restitution_pw == (0.3 if name == "damped" else 0.97)
+    assert np.array_equal(beds["case"], beds["damped"])
+
+
 def test_vtp_round_trip_and_pvd(tmp_path):
     p = Particles()
     p.add(np.random.default_rng(0).random((7, 3)), 1e-3, 2500.0, vel=np.ones((7, 3)))
