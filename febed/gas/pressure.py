@@ -28,8 +28,9 @@ import ufl
 # fastest of hypre BoomerAMG (several settings), GAMG and ML on the seed-001 intermediate mesh with a
 # bubbling-bed right-hand-side sequence (benchmarks/gas_step.py; ~23 ms vs ~39 ms GAMG, ~55 ms BoomerAMG
 # per warm-started solve on this machine). Falls back to GAMG when PETSc was built without ML. On more
-# than one rank the default is GAMG: ML aborted the process (inside KSPSetUp) on 2 ranks after a dozen
-# solver instances had been created in one test session; not investigated further.
+# than one rank the default is GAMG (19-21 ms per gas step on 2 ranks against 17 ms with ML): with Debian's
+# PETSc 3.18 and ML, a process under `mpirun -n 2` that sets up a few ML solvers corrupts its heap and
+# aborts (SEGV in KSPSetUp at the 2nd to 10th solver kept alive, reproduced; serially 60 are fine).
 DEFAULT_OPTIONS = {
     "ksp_type": "cg",
     "pc_type": "ml",
