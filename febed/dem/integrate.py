@@ -219,7 +219,7 @@ def rk2_staged(dem, n_steps: int, dt: float) -> float:
     h = 0.5 * dt
     worst = 0.0
     P, W, pl, (x0, v0, w0, htmp, whtmp) = dem.kernel_args()
-    ex.update_ghosts(P, P.vel, P.omega)
+    ex.update_ghosts(P, P.vel, P.omega, spin=p.rotation)
     for _ in range(n_steps):
         fx = P.aux("_fext")
         compute_forces(
@@ -229,7 +229,7 @@ def rk2_staged(dem, n_steps: int, dt: float) -> float:
         )  # fmt: skip
         _rk2_half(P.n_owned, h, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation, dim2, x0,
                   v0, w0)  # fmt: skip
-        ex.update_ghosts(P, P.vel, P.omega)
+        ex.update_ghosts(P, P.vel, P.omega, spin=p.rotation)
         w = compute_forces(
             P.pos, P.vel, P.omega, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, pl.hist,
             dem.wstart, dem.wid, dem.whist, dem.whist, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw, h, dt,
@@ -238,7 +238,7 @@ def rk2_staged(dem, n_steps: int, dt: float) -> float:
         worst = max(worst, w)
         far = _rk2_full(P.n_owned, dt, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation,
                         dim2, x0, v0, w0, dem.pos_ref)  # fmt: skip
-        if ex.update_ghosts(P, P.vel, P.omega, far) > 0.5 * pl.skin:  # ghosts ready for the next step ...
+        if ex.update_ghosts(P, P.vel, P.omega, far, p.rotation) > 0.5 * pl.skin:  # ghosts ready for the next step ...
             dem.rebuild()  # ... unless the lists must be rebuilt (which refreshes them)
             P, W, pl, (x0, v0, w0, htmp, whtmp) = dem.kernel_args()
     return worst
@@ -258,14 +258,14 @@ def verlet_staged(dem, n_steps: int, dt: float) -> float:
     P, W, pl, (vp, wp, _, _, _) = dem.kernel_args()
     far = _verlet_drift(P.n_owned, dt, h, P.pos, P.vel, P.omega, P.force, P.torque, P.aux("_fext"), P.mass,
                         P.inertia, p.rotation, dim2, vp, wp, dem.pos_ref, 0.5 * pl.skin)  # fmt: skip
-    resume = ex.update_ghosts(P, vp, wp, float(far)) > 0.0
+    resume = ex.update_ghosts(P, vp, wp, float(far), p.rotation) > 0.0
     for s in range(n_steps):
         if resume:
             dem.rebuild()
             P, W, pl, (vp, wp, _, _, _) = dem.kernel_args()
             _verlet_predict(P.n_owned, h, P.vel, P.omega, P.force, P.torque, P.aux("_fext"), P.mass, P.inertia,
                             p.rotation, vp, wp)  # fmt: skip
-            ex.update_ghosts(P, vp, wp)
+            ex.update_ghosts(P, vp, wp, spin=p.rotation)
         fx = P.aux("_fext")
         w = compute_forces(
             P.pos, vp, wp, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, pl.hist,
@@ -278,7 +278,7 @@ def verlet_staged(dem, n_steps: int, dt: float) -> float:
         else:
             far = _verlet_drift(P.n_owned, dt, dt, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia,
                                 p.rotation, dim2, vp, wp, dem.pos_ref, 0.5 * pl.skin)  # fmt: skip
-            resume = ex.update_ghosts(P, vp, wp, float(far)) > 0.0
+            resume = ex.update_ghosts(P, vp, wp, float(far), p.rotation) > 0.0
     return worst
 
 

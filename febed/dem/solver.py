@@ -419,7 +419,7 @@ class DEM:
             return
         verlet = self.integrator.name == "verlet"
         if verlet and ex.any(not self._forces_valid):
-            ex.update_ghosts(P, P.vel, P.omega)
+            ex.update_ghosts(P, P.vel, P.omega, spin=self.params.rotation)
             self.compute_forces()
         worst = self.integrator.staged(self, n_steps, dt)
         self.max_overlap = max(self.max_overlap, worst)

@@ -26,6 +26,7 @@ import time
 from mpi4py import MPI
 
 import numpy as np
+from numba import njit
 
 from febed.coupling.locate import FOUND, OUTSIDE_LOCAL, locate
 from febed.dem.particles import GID_LIMIT
@@ -34,6 +35,29 @@ from febed.parallel.halo import HaloTable
 _GHOST_FLOATS = ("pos", "vel", "omega", "diameter", "mass", "inertia")
 _GHOST_INTS = ("gid", "n_orig", "material")
 _MASK31 = (1 << 31) - 1
+
+
+@njit(cache=True)
+def _pack(rows, pos, vel, omega, spin, buf):
+    """buf[k] = (pos, vel[, omega]) of row rows[k]: one ghost-update message (omega only if `spin`)."""
+    for k in range(rows.size):
+        i = rows[k]
+        for a in range(3):
+            buf[k, a] = pos[i, a]
+            buf[k, 3 + a] = vel[i, a]
+            if spin:
+                buf[k, 6 + a] = omega[i, a]
+
+
+@njit(cache=True)
+def _unpack(first, buf, pos, vel, omega, spin):
+    """Rows first + k get buf[k]'s pos, vel and omega (zero without `spin`: particles that never rotate)."""
+    for k in range(buf.shape[0]):
+        i = first + k
+        for a in range(3):
+            pos[i, a] = buf[k, a]
+            vel[i, a] = buf[k, 3 + a]
+            omega[i, a] = buf[k, 6 + a] if spin else 0.0
 
 
 def _split_by_gid(keys: np.ndarray, gid_sets: dict[int, np.ndarray], pair: bool) -> dict[int, np.ndarray]:
@@ -295,14 +319,16 @@ class ParticleExchange:
             fields[name] = ri[:, k]
         fields["cell"] = np.full(m, -1, dtype=np.int64)
         P.set_ghosts(**fields)
-        self._fbuf = np.empty((rows.size, 9))
-        self._rbuf = np.empty((m, 9))
+        self._bufs = {}  # update messages by width: 9 (pos, vel, omega) or 6 (no rotation)
         self.timers["ghosts"] += time.perf_counter() - t0
 
-    def update_ghosts(self, particles, vel: np.ndarray, omega: np.ndarray, local_max: float | None = None):
+    def update_ghosts(self, particles, vel: np.ndarray, omega: np.ndarray, local_max: float | None = None,
+                      spin: bool = True):  # fmt: skip
         """Copy the owners' pos, `vel`, `omega` ((n, 3), indexed like the particle rows) into the ghost rows.
 
         vel/omega are the velocities the force evaluation uses (the particle's, or Verlet's predicted ones).
+        Without `spin` (a DEM that does not integrate rotation: every omega is zero) omega is not sent and
+        the ghosts' omega rows are set to zero, a third less to send.
         With `local_max`, its maximum over the ranks is reduced in the same round of messages and returned
         (the stepping's rebuild criterion: one synchronisation instead of two).
         """
@@ -311,10 +337,11 @@ class ParticleExchange:
         t0 = time.perf_counter()
         P = particles
         rows = self._send_rows
-        sb, rb = self._fbuf, self._rbuf
-        sb[:, 0:3] = P.pos[rows]
-        sb[:, 3:6] = vel[rows]
-        sb[:, 6:9] = omega[rows]
+        w = 9 if spin else 6
+        if w not in self._bufs:
+            self._bufs[w] = (np.empty((rows.size, w)), np.empty((int(self._recv_start[-1]), w)))
+        sb, rb = self._bufs[w]
+        _pack(rows, P.pos, vel, omega, spin, sb)
         reqs = []
         if local_max is not None:
             red = np.array([local_max, 0.0])
@@ -328,10 +355,7 @@ class ParticleExchange:
             if b > a:
                 reqs.append(self.comm.Isend(sb[a:b], dest=r, tag=13))
         MPI.Request.Waitall(reqs)
-        g = slice(P.n_owned, P.n_owned + rb.shape[0])
-        P.pos[g] = rb[:, 0:3]
-        vel[g] = rb[:, 3:6]
-        omega[g] = rb[:, 6:9]
+        _unpack(P.n_owned, rb, P.pos, vel, omega, spin)
         self.timers["update"] += time.perf_counter() - t0
         return float(red[1]) if local_max is not None else None
 
