@@ -51,6 +51,19 @@ from febed.io.rundir import write_status
 from febed.solver import RunFailure, build_solver
 
 
+def agree(comm, sig: int, *due: bool) -> tuple:
+    """(largest signal number over the ranks, then rank 0's value of each `due` flag) on every rank (collective).
+
+    Decisions taken from a rank's own wall clock must be rank 0's: the ranks' clocks disagree, and a rank
+    acting on its own would make collective calls its partners never make (a hang).
+    """
+    if comm.size == 1:
+        return (sig, *due)
+    flags = np.array([sig, *(due if comm.rank == 0 else [False] * len(due))], dtype=np.int64)
+    comm.Allreduce(MPI.IN_PLACE, flags, op=MPI.MAX)
+    return (int(flags[0]), *(bool(f) for f in flags[1:]))
+
+
 class Interrupted(Exception):
     """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
 
@@ -309,20 +322,21 @@ class CoupledRun:
         s = self.solver
         write_status(self.outdir, state, s.t, self.case.run.end_time, s.steps, message, self.comm)
 
-    def _requests(self) -> tuple[int, bool]:
-        """(signal received, wall-clock checkpoint due), agreed by all ranks (collective under MPI)."""
-        wall_due = time.perf_counter() - self._last_checkpoint >= self.case.output.checkpoint_wall_interval
-        if self.comm.size == 1:
-            return self._signal, wall_due
-        sig, due = self.comm.allreduce((self._signal, int(wall_due) if self.comm.rank == 0 else 0), op=MPI.MAX)
-        return sig, bool(due)
+    def _requests(self) -> tuple[int, bool, bool]:
+        """(signal received, wall-clock checkpoint due, progress line due), agreed by all ranks (collective).
+
+        Both wall-clock decisions are rank 0's: the ranks' clocks disagree, and each decision leads to
+        collective calls (a checkpoint; the particle count of the progress line), which every rank must make.
+        """
+        now = time.perf_counter()
+        wall_due = now - self._last_checkpoint >= self.case.output.checkpoint_wall_interval
+        show = now - self._last_progress >= self.case.output.progress_interval
+        return agree(self.comm, self._signal, wall_due, show)
 
     # ---------------------------------------------------------------------------------------- loop
-    def progress(self, end: float, force: bool = False) -> None:
-        """Show a progress line if `progress_interval` wall seconds have passed (or `force`)."""
+    def progress(self, end: float) -> None:
+        """Show the progress line (collective under MPI: call it on every rank, `_requests` says when)."""
         now = time.perf_counter()
-        if not force and now - self._last_progress < self.case.output.progress_interval:
-            return
         self._last_progress = now
         s = self.solver
         done = s.t - self._t0
@@ -360,7 +374,7 @@ class CoupledRun:
                 self.fail(err, collective=not self.broken)
                 raise err from e
             self.output()
-            sig, wall_due = self._requests()
+            sig, wall_due, show = self._requests()
             if sig or wall_due or s.t >= self.next["checkpoint"] - 1e-12 * end:
                 self.checkpoint()
             if sig:
@@ -370,8 +384,9 @@ class CoupledRun:
                 raise Interrupted(
                     sig, f"stopped by {name} at t = {s.t:.6g} s after a checkpoint; continue with --restart"
                 )
-            self.progress(end)
-        self.progress(end, force=True)
+            if show:
+                self.progress(end)
+        self.progress(end)
         self.display.end()
 
     def fail(self, error: RunFailure, collective: bool = True) -> None:
