@@ -35,16 +35,17 @@ FEBED = Path(sys.executable).parent / "febed"
 #
 # name: (case file, MPI ranks, label). TM l = 1 is plain DEM (n_orig = 1) with the linear law; PCPM l = 1
 # starts from the plain particles, which may merge (up to `max_group` = 27 originals); PCPM l = 2 starts from
-# groups of 8, once serial and once on 2 MPI ranks (pcpm2-np2.toml: pcpm2.toml without progress lines, see
-# there). The 9,600-particle case at 1.9 m/s runs plain DEM with the Gidaspow blend and with seed 000's EMMS
+# groups of 8, once serial and once on 2 MPI ranks (`pcpm2-np2`); PCPM l = 3 from groups of 27 (merging up to
+# 64). The 9,600-particle case at 1.9 m/s runs plain DEM with the Gidaspow blend and with seed 000's EMMS
 # drag, and PCPM from l = 1. No run uses the gas LES: every case has the plain gas model of `../wang2d.toml`.
 RUNS = {
     "tm1": ("tm1.toml", 1, "TM l = 1 (DEM)"),
     "pcpm1": ("pcpm1.toml", 1, "PCPM from l = 1"),
     "tm2": ("tm2.toml", 1, "TM l = 2"),
     "pcpm2": ("pcpm2.toml", 1, "PCPM from l = 2"),
-    "pcpm2-np2": ("pcpm2-np2.toml", 2, "PCPM from l = 2, 2 ranks"),
+    "pcpm2-np2": ("pcpm2.toml", 2, "PCPM from l = 2, 2 ranks"),
     "tm3": ("tm3.toml", 1, "TM l = 3"),
+    "pcpm3": ("pcpm3.toml", 1, "PCPM from l = 3"),
     "dem9600": ("dem9600.toml", 1, "9,600 at 1.9 m/s, DEM"),
     "dem9600-emms": ("dem9600-emms.toml", 1, "9,600 at 1.9 m/s, DEM, EMMS drag"),
     "pcpm9600": ("pcpm9600.toml", 1, "9,600 at 1.9 m/s, PCPM from l = 1"),
@@ -155,7 +156,7 @@ M_O = RHO * math.pi / 6 * D**3
 def weight_per_area(name: str) -> float:
     """Bed weight per cross-section (Pa) of run `name`: N_orig m_O g / (width x depth)."""
     pr = res[name]["pr"]
-    ratio = {"tm2": 2, "pcpm2": 2, "pcpm2-np2": 2, "tm3": 3}.get(name, 1)
+    ratio = {"tm2": 2, "pcpm2": 2, "pcpm2-np2": 2, "tm3": 3, "pcpm3": 3}.get(name, 1)
     n_parcels = pr["particles"][0]
     n_orig = pr["originals"][0] if "originals" in pr else n_parcels * ratio**3
     return n_orig * M_O * G / (WIDTH * ratio * D)
@@ -176,7 +177,7 @@ def save_small(fig, path: Path, dpi: int) -> None:
 #
 # The pressure drop "at 45 mm" is the section-averaged pressure at 45 mm above the distributor minus that at
 # the outlet (seed 000 Figs 6 and 11); normalised by the bed weight per area so every l reads alike.
-ALL_4080 = ("tm1", "pcpm1", "tm2", "pcpm2", "pcpm2-np2", "tm3")
+ALL_4080 = ("tm1", "pcpm1", "tm2", "pcpm2", "pcpm2-np2", "tm3", "pcpm3")
 main_4080 = [n for n in ALL_4080 if n in res]
 groups_9600 = [n for n in ("dem9600", "dem9600-emms", "pcpm9600") if n in res]
 for tag, names, all_names in (("4080", main_4080, main_4080), ("9600", groups_9600, groups_9600)):
@@ -209,7 +210,7 @@ for tag, names, all_names in (("4080", main_4080, main_4080), ("9600", groups_96
 #
 # The probes hold cumulative counts; events per 10 ms are their differences.
 pc = [n for n in RUNS if n in res and "groups" in res[n]["pr"]]
-pc_main = [n for n in ("pcpm1", "pcpm2", "pcpm2-np2") if n in res]  # events per 10 ms: the 4,080 bed
+pc_main = [n for n in ("pcpm1", "pcpm2", "pcpm2-np2", "pcpm3") if n in res]  # events per 10 ms: the 4,080 bed
 if pc:
     fig, ax = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
     for n in pc:
