@@ -9,7 +9,6 @@ steps, where they must agree to 1e-8.
 """
 
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _febed_process import MPIRUN, clean_env
 
 from febed.io.checkpoint import list_checkpoints, read_checkpoint
 from febed.io.probes import read_probes
@@ -29,7 +29,6 @@ SETTINGS = [
     "output.probe_interval=1e-3", "output.field_interval=0.01", "output.particle_interval=0.01",
     'gas.petsc_options="-febed_pressure_pc_type hypre"', "gas.mass_tolerance=1e-11",
 ]  # fmt: skip
-MPIRUN = ["mpirun", "-n", "2", "--oversubscribe"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
 SKIP = [k for k in ("wall_dem", "wall_coupling", "wall_gas", "wall_output", "gas_mass_imbalance", "poisson_iterations")]
 
 pytestmark = pytest.mark.skipif(shutil.which("mpirun") is None, reason="needs mpirun")
@@ -39,11 +38,6 @@ def command(out, end, ranks, *extra):
     sets = [a for s in [*SETTINGS, f"output.directory={out}", f"run.end_time={end}"] for a in ("--set", s)]
     cmd = [sys.executable, "-m", "febed.cli", "run", str(CASE), *sets, *extra]
     return (MPIRUN if ranks == 2 else []) + cmd
-
-
-def clean_env():
-    """This process's environment without the MPI variables of its own (singleton) MPI start-up."""
-    return {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_", "OPAL_", "PRTE_"))}
 
 
 def febed(out, end, ranks, *extra):

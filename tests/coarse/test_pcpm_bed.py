@@ -7,25 +7,19 @@ is reported. Each run is a `febed run` process, under `mpirun -n 2` for 2 ranks,
 """
 
 import json
-import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from _febed_process import MPIRUN, clean_env
 
 from febed.io.particles import read_vtp
 from febed.io.probes import read_probes
 from febed.post import list_snapshots
 
 CASE = Path(__file__).parents[2] / "demos" / "wang2d" / "coarse" / "pcpm2.toml"
-MPIRUN = ["mpirun", "-n", "2", "--oversubscribe"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
-
-
-def clean_env():
-    """This process's environment without the MPI variables of its own (singleton) MPI start-up."""
-    return {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_", "OPAL_", "PRTE_"))}
 
 
 @pytest.mark.slow
