@@ -2,6 +2,7 @@
 
 import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from febed.meshing import load_case_mesh
 from febed.solver import CoupledSolver
 
 LOG = logging.getLogger("febed.test")
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def box_case(tmp_path, extent, size, **sections):
@@ -150,3 +152,13 @@ def test_outlet_removes_particles_and_a_leak_elsewhere_stops_the_run(tmp_path):
         while s.t < 0.01:
             s.step()
             s.check()
+
+
+@pytest.mark.mpi
+def test_pseudo2d_box_walls_are_planes(mpi_tmp_path):
+    """The pseudo-2D column's walls (sides, front, back, bottom) are five planes; the open top is none."""
+    case = load_case(ROOT / "demos" / "pseudo2d" / "C1.toml", [f"output.directory={mpi_tmp_path}"])
+    md = load_case_mesh(case, cache_dir=mpi_tmp_path / "mesh")
+    walls = walls_from_mesh(case, md)
+    assert walls.facets.shape[0] == 0 and walls.plane_p.shape[0] == 5
+    assert not np.any(np.isclose(walls.plane_p[:, 2], 0.25) & (walls.plane_n[:, 2] != 0))

@@ -54,11 +54,20 @@ def wall_tags(case, md) -> list[str]:
 
 
 def walls_from_mesh(case, md) -> Walls:
-    """Facet walls (allgathered boundary facets) of the case's particle-confining tags."""
+    """Walls of the case's particle-confining tags (allgathered boundary facets; collective).
+
+    A face of the mesh's bounding box that they cover completely becomes a plane (`Walls.from_facets`).
+    """
     tags = wall_tags(case, md)
     if not tags:
         return Walls()
-    return Walls(facets=md.boundary_facet_coords(tags))
+    x = md.mesh.geometry.x
+    comm = md.comm
+    lo = x.min(axis=0) if x.size else np.full(3, np.inf)
+    hi = x.max(axis=0) if x.size else np.full(3, -np.inf)
+    comm.Allreduce(MPI.IN_PLACE, lo, op=MPI.MIN)
+    comm.Allreduce(MPI.IN_PLACE, hi, op=MPI.MAX)
+    return Walls.from_facets(md.boundary_facet_coords(tags), box=(lo, hi))
 
 
 def inside_mesh(md, pos: np.ndarray) -> np.ndarray:
@@ -165,7 +174,9 @@ def build_dem(case, md, log, exchange=None) -> DEM:
     """
     dim = md.gdim
     walls = walls_from_mesh(case, md)
-    log.info(f"DEM walls: {walls.count} facets of tags {wall_tags(case, md)}, dim {dim}")
+    npl = walls.plane_p.shape[0]
+    log.info(f"DEM walls: {npl} plane(s) (bounding-box faces) and {walls.count - npl} facets of tags "
+             f"{wall_tags(case, md)}, dim {dim}")  # fmt: skip
     p = case.particles
     bed_path = case.resolve_path(p.bed_file) if p.bed_file else None
     if bed_path is not None and Path(bed_path).exists():

@@ -152,3 +152,48 @@ def test_spheres_poured_in_cylinder_mesh_stay_inside(tmp_path):
 def test_many_spheres_poured_in_cylinder_mesh_stay_inside(tmp_path):
     dem = pour_into_cylinder(tmp_path, 2000, 2e-3, 0.3)
     assert dem.max_overlap < 0.05
+
+
+def test_box_faces_covered_by_facets_become_planes():
+    side = 8e-3
+    quads = closed_cube(side, 4)
+    walls = Walls.from_facets(quads, box=([0.0] * 3, [side] * 3))
+    assert walls.plane_p.shape[0] == 6 and walls.facets.shape[0] == 0
+    assert np.allclose(np.abs(walls.plane_n).sum(axis=1), 1.0)
+    centre = np.full(3, side / 2)  # every normal points into the box
+    assert np.all(np.einsum("ij,ij->i", centre - walls.plane_p, walls.plane_n) > 0)
+    top = np.flatnonzero(np.all(np.isclose(quads[:, :, 2], side), axis=1))
+    holed = Walls.from_facets(np.delete(quads, top[0], axis=0), box=([0.0] * 3, [side] * 3))
+    assert holed.plane_p.shape[0] == 5  # the top face misses a facet: its 15 quads stay (30 triangles)
+    assert holed.facets.shape[0] == 2 * (top.size - 1)
+    assert not np.any(np.all(np.isclose(holed.plane_p, [0, 0, side]) & (holed.plane_n[:, 2:] < 0), axis=1))
+
+
+@pytest.mark.parametrize("pos", [[4e-3, 4e-3, 0.45e-3], [0.4e-3, 4e-3, 0.3e-3], [0.45e-3, 0.35e-3, 0.4e-3],
+                                 [7.6e-3, 3e-3, 7.55e-3], [4e-3, 4e-3, 4e-3]])  # fmt: skip
+def test_planes_of_a_box_push_as_its_facets(pos):
+    """Face, concave edge, concave corner and no contact: the same force from the planes as from the facets."""
+    side = 8e-3
+    quads = closed_cube(side, 4)
+    f_facets = force_on(Walls(facets=quads), pos)
+    f_planes = force_on(Walls.from_facets(quads, box=([0.0] * 3, [side] * 3)), pos)
+    assert np.allclose(f_planes, f_facets, rtol=1e-12, atol=1e-15 * KN * D)
+
+
+def test_segments_of_a_2d_box_become_lines():
+    """2D walls: the sides of a rectangle, each split in segments, become four lines; a gap keeps its side."""
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.02, 0.05, 0.0])
+    segs = []
+    for a, m in ((0, 4), (1, 10)):  # sides x = const (split along y) and y = const (split along x)
+        b = 1 - a
+        for val in (lo[a], hi[a]):
+            t = np.linspace(lo[b], hi[b], m + 1)
+            for k in range(m):
+                s = np.zeros((2, 3))
+                s[:, a] = val
+                s[:, b] = t[k : k + 2]
+                segs.append(s)
+    segs = np.array(segs)
+    assert Walls.from_facets(segs, box=(lo, hi)).plane_p.shape[0] == 4
+    part = Walls.from_facets(segs[1:], box=(lo, hi))
+    assert part.plane_p.shape[0] == 3 and part.facets.shape[0] == 3
