@@ -105,3 +105,37 @@ def test_history_carried_by_merge_equals_history_by_keys():
         out.append((dem.particles.pos.copy(), dem.pairs.builds, float(np.abs(dem.pairs.hist).max())))
     assert out[0][1] > 100 and out[0][2] > 0  # many rebuilds with live tangential springs
     assert np.array_equal(out[0][0], out[1][0])
+
+
+def test_history_restore_finds_every_saved_pair_and_only_those():
+    """The hash-table restore: every pair of the new list gets its saved history (sign by gid order) or zero."""
+    from febed.dem.neighbours import key_table
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    pos = rng.random((n, 3)) * 0.02
+    r = np.full(n, 5e-4)
+    gid = rng.permutation(np.arange(n) * 500_009 + 17).astype(np.int64)  # large, scattered gids
+    old = PairList(skin=1e-4)
+    old.build(pos, r, gid)
+    old.hist[: old.size] = rng.normal(size=(old.size, 3))
+    old.hist[: old.size : 3] = 0.0  # pairs without history are not saved
+    keys, vals = old.saved_history(gid)
+    perm = rng.permutation(n)  # new row order, as after a sort or a migration
+    new = PairList(skin=1e-4)
+    new.build(pos[perm], r[perm], gid[perm], saved=(keys, vals))
+    got = {}
+    for i in range(n):
+        for k in range(new.start[i], new.start[i + 1]):
+            got[(gid[perm][i], gid[perm][new.nbr[k]])] = new.hist[k]
+    expect = {}
+    for i in range(n):
+        for k in range(old.start[i], old.start[i + 1]):
+            expect[(gid[i], gid[old.nbr[k]])] = old.hist[k]
+    assert len(got) == len(expect) == old.size
+    for (a, b), h in got.items():
+        ref = expect[(a, b)] if (a, b) in expect else -expect[(b, a)]
+        assert np.array_equal(h, ref)
+    tkeys, trows = key_table(keys)
+    assert tkeys.size >= 2 * keys.size and np.array_equal(np.sort(tkeys[tkeys >= 0]), np.sort(keys))
+    assert np.array_equal(keys[trows[tkeys >= 0]], tkeys[tkeys >= 0])
