@@ -75,3 +75,19 @@ def test_petsc_options_reach_the_pressure_solver():
         PETSc.Options().delValue("febedtest_pressure_ksp_monitor_cancel")
     with pytest.raises(ValueError, match="petsc_options"):
         apply_petsc_options("pc_type gamg")
+
+
+@pytest.mark.parametrize("gdim", [2, 3])
+def test_strain_rate_norm_of_a_general_gradient(gdim):
+    """|S| = sqrt(2 S:S), S = (A + Aᵀ)/2, for a node whose Galerkin sums give ΔV·A (every entry exercised)."""
+    from febed.gas.kernels import strain_rate_norm
+
+    rng = np.random.default_rng(gdim)
+    A = rng.normal(size=(gdim, gdim))
+    mass = 0.37
+    u = np.eye(gdim)  # column node j carries the unit vector e_j, so Σ_k grad[k, d] u[k, c] = grad[c, d]
+    grad = mass * A
+    out = np.zeros(1)
+    strain_rate_norm(np.array([0, gdim]), np.arange(gdim), np.ascontiguousarray(grad), u, np.array([mass]), out)
+    S = 0.5 * (A + A.T)
+    assert out[0] == pytest.approx(np.sqrt(2.0 * np.sum(S * S)), rel=1e-14)
