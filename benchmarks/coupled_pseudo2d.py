@@ -6,6 +6,7 @@ the particle load per rank, after a warm-up that compiles the kernels and lets t
 The packed 75 g bed of demos/pseudo2d is made on first use (several minutes) and reused.
 
     [mpirun -n 2] python benchmarks/coupled_pseudo2d.py [--sim-time 0.01] [--case demos/pseudo2d/C2.toml]
+        [--set contact.skin=0.1 ...]
 """
 
 import argparse
@@ -28,12 +29,14 @@ parser = argparse.ArgumentParser()
 parser.add_argument("--case", default=str(ROOT / "demos" / "pseudo2d" / "C2.toml"))
 parser.add_argument("--sim-time", type=float, default=0.01, help="simulated seconds timed (after the warm-up)")
 parser.add_argument("--warmup", type=float, default=0.004, help="simulated seconds before timing")
+parser.add_argument("--set", action="append", default=[], help="case overrides KEY=VALUE (repeatable)")
 args = parser.parse_args()
 
 comm = MPI.COMM_WORLD
 cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?")
 out = Path(comm.bcast(tempfile.mkdtemp(prefix="febed-bench-") if comm.rank == 0 else None, root=0))
-case = load_case(args.case, [f"output.directory={out}", "output.field_interval=100", "output.particle_interval=100"])
+quiet = [f"output.directory={out}", "output.field_interval=100", "output.particle_interval=100"]
+case = load_case(args.case, quiet + args.set)
 log = get_logger(None, comm) if comm.rank == 0 else logging.getLogger("febed.bench")
 t0 = time.perf_counter()
 run = CoupledRun(case, out, log, comm)
