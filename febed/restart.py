@@ -124,7 +124,7 @@ def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> di
     rows = {k: v for k, v in arrays.items() if k.startswith("gas/") or k.startswith(f"dem/{_ROWS}")}
     rows.update({f"dem/{k}": arrays[f"dem/{k}"] for k in _HISTORY if f"dem/{k}" in arrays})
     out = gather_rows(rows, comm)
-    scalars = ("time", "steps", "dt", "pl_skin", "pl_builds", "max_overlap")
+    scalars = ("time", "steps", "dt", "pl_skin", "pl_builds", "max_overlap", "walls_count")
     top = comm.allreduce(int(arrays["dem/p_gid"].max(initial=-1)), op=MPI.MAX)
     if comm.rank == 0:
         for k in _HISTORY[::2]:  # cross-partition pairs are held by both ranks: keep each key once

@@ -73,7 +73,10 @@ def test_two_ranks_follow_the_serial_bed(serial, tmp_path):
             np.testing.assert_allclose(b[k], a[k], rtol=1e-8, atol=1e-8 * scale, err_msg=k)
     (pa, _), (pb, _) = by_gid(serial), by_gid(out)
     assert np.array_equal(pa["gid"], pb["gid"])  # every particle once, none lost or duplicated
-    np.testing.assert_allclose(pb["pos"], pa["pos"], rtol=0, atol=1e-9 * 0.5)  # 1e-9 of the bed height
+    # 1e-8 of the bed height, as the probes: the bed is chaotic, the positions of the two runs differ by 7e-16 m
+    # after 10 gas steps and grow 15-30x per 10 steps (measured: 2e-11 m at step 50 with facet walls, 8e-10 m
+    # with the planes, a different realization of the same round-off), while a wrong force gives >> 1e-8
+    np.testing.assert_allclose(pb["pos"], pa["pos"], rtol=0, atol=1e-8 * 0.5)
     log = (out / "febed.log").read_text()
     assert "load imbalance max/mean" in log
 

@@ -483,6 +483,7 @@ class DEM:
         s["time"] = float(self.time)
         s["steps"] = int(self.steps)
         s["max_overlap"] = float(self.max_overlap)
+        s["walls_count"] = int(self.walls.count)  # wall ids index these walls (see set_state)
         return s
 
     def set_state(self, state: dict) -> None:
@@ -518,8 +519,11 @@ class DEM:
                 (np.array(state["saved_keys"], dtype=np.int64), np.array(state["saved_vals"]).reshape(-1, 3)),
                 (np.array(state["saved_wkeys"], dtype=np.int64), np.array(state["saved_wvals"]).reshape(-1, 3)),
             )
+        other_walls = int(state.get("walls_count", -1)) != self.walls.count
+        if other_walls:  # other walls (or a checkpoint from before the bounding-box planes)
+            self._forget_wall_history()
         self.pos_ref = np.array(state["pos_ref"], dtype=float).reshape(-1, 3)
-        self._dirty = bool(int(state.get("dirty", 1)))
+        self._dirty = bool(int(state.get("dirty", 1))) or other_walls
         self._forces_valid = bool(int(state.get("forces_valid", 0)))
         self._since_sort = int(state.get("since_sort", 0))
         dt = float(state["dt"])
@@ -527,6 +531,18 @@ class DEM:
         self.time = float(state["time"])
         self.steps = int(state["steps"])
         self.max_overlap = float(state.get("max_overlap", 0.0))
+
+    def _forget_wall_history(self) -> None:
+        """Drop the restored particle-wall lists and history (their wall ids mean other walls); keep the pairs'."""
+        if self._lists_valid:
+            P = self.particles
+            self._saved = (self.pairs.saved_history(P.gid, P.n_owned), None)
+            self._lists_valid = False
+        if self._saved is not None:
+            self._saved = (self._saved[0], (np.zeros(0, dtype=np.int64), np.zeros((0, 3))))
+        self.wstart = np.zeros(1, dtype=np.int64)
+        self.wid = np.zeros(64, dtype=np.int64)
+        self.whist = np.zeros((64, 3))
 
     # ------------------------------------------------------------------ diagnostics
     def kinetic_energy(self) -> float:

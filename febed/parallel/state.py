@@ -28,6 +28,8 @@ def merge_states(states: list[dict]) -> dict:
     first = states[0]
     for k in ("dt", "time", "steps", "pl_skin", "since_sort"):
         out[k] = first[k]
+    if "walls_count" in first:
+        out["walls_count"] = first["walls_count"]
     out["pl_builds"] = max(int(s.get("pl_builds", 0)) for s in states)
     out["max_overlap"] = max(float(s.get("max_overlap", 0.0)) for s in states)
     out["p_next_gid"] = int(out["p_gid"].max()) + 1 if out["p_gid"].size else 0  # per-rank gid blocks start over

@@ -197,3 +197,29 @@ def test_segments_of_a_2d_box_become_lines():
     assert Walls.from_facets(segs, box=(lo, hi)).plane_p.shape[0] == 4
     part = Walls.from_facets(segs[1:], box=(lo, hi))
     assert part.plane_p.shape[0] == 3 and part.facets.shape[0] == 3
+
+
+def test_state_restored_with_other_walls_drops_only_the_wall_history():
+    """A checkpoint's wall ids mean its own walls: restored into a DEM whose walls differ (e.g. a checkpoint
+    from before the bounding-box planes), the wall lists and history are dropped, the pair history kept."""
+    side = 8e-3
+    quads = closed_cube(side, 4)
+    p = DEMParams(contact_model="linear-history", kn=1e4, friction_pp=0.5, friction_pw=0.5, integrator="verlet",
+                  restitution_pp=0.1, restitution_pw=0.1)  # fmt: skip
+    a = DEM(p, walls=Walls(facets=quads))
+    vel = np.random.default_rng(4).normal(0, 0.3, (30, 3))
+    a.add_particles(random_positions(30, [0] * 3, [side, side, 2 * D], D, seed=3), D, RHO, vel=vel)
+    a.advance(2000)  # sliding on the floor and into each other: wall and pair contacts with tangential history
+    state = a.get_state()
+    assert np.any(a.whist != 0) and np.any(a.pairs.hist[: a.pairs.size] != 0)
+    same = DEM(p, walls=Walls(facets=quads))
+    same.set_state(state)
+    assert np.array_equal(same.whist, a.whist) and not same._dirty
+    planes = DEM(p, walls=Walls.from_facets(quads, box=([0.0] * 3, [side] * 3)))
+    planes.set_state(state)
+    assert planes._dirty and planes._saved[1][0].size == 0
+    keys, vals = a.pairs.saved_history(a.particles.gid)
+    assert np.array_equal(planes._saved[0][0], keys) and np.array_equal(planes._saved[0][1], vals)
+    planes.advance(200)  # rebuilds its wall lists against the planes
+    assert np.all(planes.particles.pos > 0) and np.all(planes.particles.pos < side)
+    assert np.all(planes.wid[: planes.wstart[-1]] < planes.walls.count)
