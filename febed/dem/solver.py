@@ -445,8 +445,9 @@ class DEM:
         """The whole stepping state as plain numpy arrays / ints / floats (for np.savez checkpoints).
 
         Owned particle rows (all fields, forces included for Verlet), pair and wall lists with their contact
-        history, the list reference positions, sort counters, step size, time, steps and max overlap. A new
-        DEM with the same parameters and walls continues bit for bit after `set_state`. Ghost rows are not
+        history, the list reference positions, sort counters, step size, time, steps, max overlap and the number
+        of walls. A new DEM with the same parameters and walls continues bit for bit after `set_state`; with
+        other walls it rebuilds its wall lists and restarts the wall history. Ghost rows are not
         saved (the parallel layer rebuilds them).
         """
         P = self.particles
