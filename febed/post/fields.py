@@ -113,6 +113,23 @@ class AveragedFields:
         t = 0.0 if j1 == j else float(np.clip((height - zc[j]) / (zc[j1] - zc[j]), 0.0, 1.0))
         return self.grid.centres(0), (1.0 - t) * f[:, j] + t * f[:, j1]
 
+    def circulation(self, bed_height: float, centre: float = 1 / 3, wall: float = 0.15) -> tuple[float, float]:
+        """Bed-averaged vertical solid flux (kg/m^2/s) in the central part and next to the side walls.
+
+        The mean of ⟨α_p ρ_p U_p,z⟩ over the bins whose centre lies below `bed_height` (m above the bottom)
+        and whose centre x/L lies within the central `centre` of the width, resp. the outer `wall` fraction
+        on either side: seed 001's double mixing loop has the first positive and the second negative.
+        """
+        x = (self.grid.centres(0) - self.grid.lo[0]) / (self.grid.hi[0] - self.grid.lo[0])
+        zc = self.grid.centres(1) - self.grid.lo[1]
+        rows = zc < bed_height
+        if not rows.any():
+            return math.nan, math.nan
+        col = self.quantity("mass_flux_z")[:, rows].mean(axis=1)
+        mid = np.abs(x - 0.5) < 0.5 * centre
+        side = (x < wall) | (x > 1.0 - wall)
+        return (float(col[mid].mean()) if mid.any() else math.nan, float(col[side].mean()) if side.any() else math.nan)
+
     def scales(self) -> dict[str, float]:
         """Seed 001 §4 scales: L, D, H (m), ρU_f (kg/m^2/s), U_f (m/s), d_p/U_f (s)."""
         i = self.info

@@ -7,6 +7,8 @@ Files written (x/L, z/H, q_p²/U_f², flux/ρU_f, t/(d_p/U_f): seed 001 §4 scal
     profile_zH<h>.csv             horizontal profiles at z/H = h (default 0.092, seed 001 Figs 13, 18)
     timeseries.csv                t, t/(d_p/U_f), dp_bed, dp_bed/(W/A), bed_height, bed_height/H
     summary.csv                   key, value: window, snapshots, means of dp_bed and bed height, W/A, ...
+                                  bed_flux_centre/walls/rhoUf: vertical solid flux averaged over the bed's
+                                  rows, central third and outer 15 % of the width (seed 001's mixing loops)
     fields.png, profile_zH<h>.png, timeseries.png, snapshots.png (instantaneous 1 - α_p, seed 001 Fig 15)
 """
 
@@ -137,6 +139,9 @@ def post_run(
     }  # fmt: skip
     if avg is not None:
         s = avg.scales()
+        nan = math.nan
+        c, w = avg.circulation(summary.bed_height_mean) if math.isfinite(summary.bed_height_mean) else (nan, nan)
+        values["bed_flux_centre/rhoUf"], values["bed_flux_walls/rhoUf"] = c / s["rhoU_f"], w / s["rhoU_f"]
         for h in heights:
             x, fz = avg.profile("mass_flux_z", h * info.height)
             _, a = avg.profile("alpha_p", h * info.height)

@@ -238,6 +238,16 @@ def test_post_run_writes_tables_and_figures(tmp_path):
     assert res.summary.dp_mean == pytest.approx(dp[sel].mean(), rel=1e-12)
     assert res.summary.weight_per_area == pytest.approx(w_a, rel=1e-12)
     assert res.values["bed_height_over_H"] == pytest.approx(0.15 / H, rel=1e-12)
+    # bed-averaged circulation: the rows below the bed height 0.15 m (bin centres 25, 75, 125 mm); the central
+    # third holds bins 1, 2 of 4 (centres x/L 0.375, 0.625), the outer 15 % bins 0, 3 (0.125, 0.875)
+    alpha_b = 48 * VP / GRID.bin_volume
+    flux = {i: np.mean([RHO_P * alpha_b * bin_velocity(i, j)[2] for j in range(3)]) / (RHO_G * UF) for i in range(4)}
+    assert res.values["bed_flux_centre/rhoUf"] == pytest.approx((flux[1] + flux[2]) / 2, rel=1e-10)
+    assert res.values["bed_flux_walls/rhoUf"] == pytest.approx((flux[0] + flux[3]) / 2, rel=1e-10)
+    assert res.values["bed_flux_centre/rhoUf"] > 0 > res.values["bed_flux_walls/rhoUf"]  # the prescribed loops
+    c, w = res.fields.circulation(0.1, centre=0.1, wall=0.13)  # two rows; no bin centre within 0.05 of x/L = 0.5
+    assert math.isnan(c) and w == pytest.approx(RHO_P * alpha_b * np.mean([bin_velocity(i, j)[2] for i in (0, 3)
+                                                                           for j in range(2)]), rel=1e-10)  # fmt: skip
     prof = np.loadtxt(run / "post" / "profile_zH0.092.csv", delimiter=",", skiprows=1)
     alpha = 48 * VP / GRID.bin_volume  # z/H = 0.092 lies in the first bin row (below its centre)
     expect = [RHO_P * alpha * bin_velocity(i, 0)[2] / (RHO_G * UF) for i in range(BINS[0])]
