@@ -29,6 +29,7 @@ SETTINGS = [
     "output.probe_interval=1e-3", "output.field_interval=0.01", "output.particle_interval=0.01",
     'gas.petsc_options="-febed_pressure_pc_type hypre"', "gas.mass_tolerance=1e-11",
 ]  # fmt: skip
+HALFWAY = ("--set", "output.checkpoint_interval=0.005")  # a checkpoint after 25 gas steps too
 SKIP = [k for k in ("wall_dem", "wall_coupling", "wall_gas", "wall_output", "gas_mass_imbalance", "poisson_iterations")]
 
 pytestmark = pytest.mark.skipif(shutil.which("mpirun") is None, reason="needs mpirun")
@@ -49,8 +50,8 @@ def probes(out):
     return read_probes(Path(out) / "probes.csv")
 
 
-def by_gid(out):
-    state, meta = read_checkpoint(list_checkpoints(Path(out) / "checkpoints")[-1])
+def by_gid(out, k=-1):
+    state, meta = read_checkpoint(list_checkpoints(Path(out) / "checkpoints")[k])
     order = np.argsort(state["dem/p_gid"])
     return {k: state[f"dem/p_{k}"][order] for k in ("gid", "pos", "vel")}, meta
 
@@ -58,24 +59,27 @@ def by_gid(out):
 @pytest.fixture(scope="module")
 def serial(tmp_path_factory):
     out = tmp_path_factory.mktemp("serial") / "run"
-    febed(out, 0.01, 1)
+    febed(out, 0.01, 1, *HALFWAY)
     return out
 
 
 def test_two_ranks_follow_the_serial_bed(serial, tmp_path):
     out = tmp_path / "run"
-    febed(out, 0.01, 2)
+    febed(out, 0.01, 2, *HALFWAY)
     a, b = probes(serial), probes(out)
     assert len(a["time"]) == len(b["time"]) == 11 and a["step"][-1] == 50
     for k in a:
         if k not in SKIP:  # pressures near the outlet are ~0: measure them against the bed's pressure
             scale = np.max(np.abs(a["p_bottom"] if k.startswith("p_") else a[k]))
             np.testing.assert_allclose(b[k], a[k], rtol=1e-8, atol=1e-8 * scale, err_msg=k)
-    (pa, _), (pb, _) = by_gid(serial), by_gid(out)
+    (pa, _), (pb, _) = by_gid(serial, 0), by_gid(out, 0)  # after 25 gas steps: 1e-9 of the bed height
     assert np.array_equal(pa["gid"], pb["gid"])  # every particle once, none lost or duplicated
-    # 1e-8 of the bed height, as the probes: the bed is chaotic, the positions of the two runs differ by 7e-16 m
-    # after 10 gas steps and grow 15-30x per 10 steps (measured: 2e-11 m at step 50 with facet walls, 8e-10 m
-    # with the planes, a different realization of the same round-off), while a wrong force gives >> 1e-8
+    np.testing.assert_allclose(pb["pos"], pa["pos"], rtol=0, atol=1e-9 * 0.5)
+    (pa, _), (pb, _) = by_gid(serial), by_gid(out)  # after 50: 1e-8 of the bed height, as the probes
+    assert np.array_equal(pa["gid"], pb["gid"])
+    # the bed is chaotic: the two runs' positions differ by 7e-16 m after 10 gas steps and grow 15-30x per
+    # 10 steps (measured: 2e-11 m at step 50 with facet walls, 8e-10 m with the planes, two realizations of
+    # the same round-off), while a wrong force gives far more than 1e-8
     np.testing.assert_allclose(pb["pos"], pa["pos"], rtol=0, atol=1e-8 * 0.5)
     log = (out / "febed.log").read_text()
     assert "load imbalance max/mean" in log
