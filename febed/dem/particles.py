@@ -212,6 +212,26 @@ class Particles:
         self.n_ghost = 0
         self._take(idx)
 
+    def drop(self, rows: np.ndarray) -> None:
+        """Remove the owned rows `rows` by moving the last surviving rows into their places; drops ghosts.
+
+        The order of the other rows is not kept (unlike `remove`/`keep`), but the cost is in the number of rows
+        removed, not in the number kept: migration takes a few dozen rows out of tens of thousands.
+        """
+        rows = np.unique(np.asarray(rows, dtype=np.int64))
+        if rows.size and (rows[0] < 0 or rows[-1] >= self.n_owned):
+            raise ValueError("rows must be in [0, n_owned)")
+        self.n_ghost = 0
+        n = self.n_owned - rows.size
+        holes = rows[rows < n]
+        tail = np.setdiff1d(np.arange(n, self.n_owned), rows, assume_unique=True)  # as many as holes
+        for name in FIELDS:
+            a = self._data[name]
+            a[holes] = a[tail]
+        for a in self._aux.values():
+            a[holes] = a[tail]
+        self.n_owned = n
+
     def append(self, data: dict[str, np.ndarray]) -> None:
         """Append owned rows given by `pack` output (gids kept as they are); drops ghosts."""
         k = np.asarray(data["pos"]).shape[0]

@@ -250,7 +250,7 @@ class ParticleExchange:
         got = self.comm.alltoall(out)
         self.migrated += int(idx.size)
         if idx.size:
-            P.keep(np.flatnonzero(~leave))
+            P.drop(idx)  # the last rows fill the holes: O(leavers), not a copy of every staying row
         more_p, more_w = [], []
         for msg in got:
             if msg is None:

@@ -48,6 +48,22 @@ def test_particles_add_remove_reorder_keep_fields():
         p.reorder(np.arange(3))
 
 
+@pytest.mark.parametrize("rows", [[], [0], [11], [0, 11], [3, 4, 10], [1, 3, 5, 7, 9, 11], list(range(12))])
+def test_particles_drop_moves_tail_rows_into_holes(rows):
+    p = Particles(capacity=4)
+    p.add(np.arange(36.0).reshape(12, 3), 1e-3, 2500.0, vel=np.arange(36.0).reshape(12, 3) + 0.5)
+    ext = p.attach("ext", 2)
+    ext[:12] = np.arange(12.0)[:, None] * [1.0, -1.0]
+    p.drop(np.array(rows, dtype=np.int64))
+    survivors = sorted(set(range(12)) - set(rows))
+    assert p.n_owned == len(survivors) and sorted(p.gid.tolist()) == survivors
+    assert p.gid[: min(rows, default=12)].tolist() == list(range(min(rows, default=12)))  # rows before the first hole stay
+    assert np.array_equal(p.pos[:, 0], 3.0 * p.gid) and np.array_equal(p.vel[:, 2], 3.0 * p.gid + 2.5)
+    assert np.array_equal(p.aux("ext")[: p.n_owned, 1], -1.0 * p.gid)  # auxiliary arrays follow their rows
+    with pytest.raises(ValueError, match="rows"):
+        p.drop(np.array([p.n_owned]))
+
+
 def test_history_follows_pairs_through_reorder_and_removal():
     """Tangential history is keyed by the gid pair: shuffle rows and drop a particle, it stays with its pair."""
     p = DEMParams(contact_model="linear-history", gravity=0.0, sort=True)
