@@ -57,7 +57,8 @@ def test_particles_drop_moves_tail_rows_into_holes(rows):
     p.drop(np.array(rows, dtype=np.int64))
     survivors = sorted(set(range(12)) - set(rows))
     assert p.n_owned == len(survivors) and sorted(p.gid.tolist()) == survivors
-    assert p.gid[: min(rows, default=12)].tolist() == list(range(min(rows, default=12)))  # rows before the first hole stay
+    first = min(rows, default=12)
+    assert p.gid[:first].tolist() == list(range(first))  # the rows before the first hole stay where they were
     assert np.array_equal(p.pos[:, 0], 3.0 * p.gid) and np.array_equal(p.vel[:, 2], 3.0 * p.gid + 2.5)
     assert np.array_equal(p.aux("ext")[: p.n_owned, 1], -1.0 * p.gid)  # auxiliary arrays follow their rows
     with pytest.raises(ValueError, match="rows"):
