@@ -86,10 +86,12 @@ def _bin(cell, ncell):
 def build_pairs(pos, radius, n, skin, start, nbr):
     """Fill the half pair list (CSR start (n+1), partners nbr) of pos[:n]; returns the number of entries needed.
 
-    The candidates are read from cell-ordered copies of the positions and radii, in which the three cells
-    of a z-column of the 3 x 3 x 3 stencil are one contiguous range (cells are numbered z fastest): nine
-    sequential scans per particle instead of 27 cells of scattered rows (1.6x faster on a bubbling bed of
-    57,000 spheres whose rows were last sorted 20 builds ago).
+    Each pair is found once, by a half stencil walked in cell order: from each particle, the rest of its own
+    z-column of three cells (cells are numbered z fastest, so a column is one contiguous range of the
+    cell-ordered copies of positions and radii) and the four columns that follow it. Found pairs (i, j) are
+    stored under min(i, j), then laid out by row with a counting sort; `sort_partners` orders each row.
+    Against a full 27-cell stencil over the rows this reads half the candidates, sequentially, and needs no
+    j > i test: 27 -> 13 ms on a bubbling bed of 57,000 spheres whose rows were last sorted 20 builds ago.
     """
     rmax = 0.0
     for i in range(n):
@@ -97,44 +99,66 @@ def build_pairs(pos, radius, n, skin, start, nbr):
     lo, size, dims = grid_of(pos, n, 2.0 * rmax + skin)
     cell = cell_index(pos, n, lo, size, dims)
     cstart, order = _bin(cell, dims[0] * dims[1] * dims[2])
-    xs = np.empty((n, 4))  # x, y, z, radius in cell order
+    xs = np.empty((n, 4))
     for q in range(n):
         j = order[q]
         for a in range(3):
             xs[q, a] = pos[j, a]
         xs[q, 3] = radius[j]
     cap = nbr.size
+    pa = np.empty(cap, dtype=np.int64)  # (row, partner) of each pair found, in search order
+    pb = np.empty(cap, dtype=np.int64)
+    count = np.zeros(n + 1, dtype=np.int64)
     k = 0
+    d0 = dims[0]
     d1 = dims[1]
     d2 = dims[2]
-    for i in range(n):
-        start[i] = k
+    for q in range(n):
+        i = order[q]
         c = cell[i]
         cz = c % d2
         cy = (c // d2) % d1
         cx = c // (d2 * d1)
-        xi = pos[i, 0]
-        yi = pos[i, 1]
-        zi = pos[i, 2]
-        ri = radius[i] + skin
+        xi = xs[q, 0]
+        yi = xs[q, 1]
+        zi = xs[q, 2]
+        ri = xs[q, 3] + skin
         z0 = max(cz - 1, 0)
         z1 = min(cz + 2, d2)
-        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-            for ay in range(max(cy - 1, 0), min(cy + 2, d1)):
-                base = (ax * d1 + ay) * d2
-                for q in range(cstart[base + z0], cstart[base + z1]):
-                    j = order[q]
-                    if j <= i:
-                        continue
-                    dx = xs[q, 0] - xi
-                    dy = xs[q, 1] - yi
-                    dz = xs[q, 2] - zi
-                    rc = ri + xs[q, 3]
-                    if dx * dx + dy * dy + dz * dz < rc * rc:
-                        if k < cap:
-                            nbr[k] = j
-                        k += 1
-    start[n] = k
+        # half stencil: the rest of this z-column after particle q, then the 4 columns that come after it
+        for s in range(5):
+            if s == 0:
+                ax, ay = cx, cy
+            elif s == 1:
+                ax, ay = cx, cy + 1
+            else:
+                ax, ay = cx + 1, cy + s - 3
+            if ax >= d0 or ay < 0 or ay >= d1:
+                continue
+            base = (ax * d1 + ay) * d2
+            q0 = q + 1 if s == 0 else cstart[base + z0]
+            for p in range(q0, cstart[base + z1]):
+                dx = xs[p, 0] - xi
+                dy = xs[p, 1] - yi
+                dz = xs[p, 2] - zi
+                rc = ri + xs[p, 3]
+                if dx * dx + dy * dy + dz * dz < rc * rc:
+                    j = order[p]
+                    a = min(i, j)
+                    count[a + 1] += 1
+                    if k < cap:
+                        pa[k] = a
+                        pb[k] = max(i, j)
+                    k += 1
+    for i in range(n):
+        count[i + 1] += count[i]
+        start[i] = count[i]
+    start[n] = count[n]
+    if k <= cap:
+        for m in range(k):
+            a = pa[m]
+            nbr[count[a]] = pb[m]
+            count[a] += 1
     return k
 
 
