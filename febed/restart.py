@@ -41,6 +41,7 @@ CHANGEABLE = (
     "gas.fourier",
     "gas.dt_min",
     "gas.dt_max",
+    "gas.drag_number",
     "gas.petsc_options",
     "gas.pressure_rtol",
     "gas.mass_tolerance",

@@ -191,6 +191,14 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "fourier": Param(0.15, "", "largest Fourier (viscous) number of the gas step", float, lo=0.0, lo_open=True),
         "dt_min": Param(1e-6, "s", "smallest gas time step allowed", float, lo=0.0, lo_open=True),
         "dt_max": Param(1e-3, "s", "largest gas time step allowed", float, lo=0.0, lo_open=True),
+        "drag_number": Param(
+            0.0,
+            "",
+            "largest drag number K dt/(rho_g eps) of a gas step, K the nodal momentum-exchange coefficient of "
+            "the previous step (0: no limit); the pressure increment ignores K and lags by D/(1+D) per step",
+            float,
+            lo=0.0,
+        ),
         "taylor_galerkin": Param(True, "-", "Lax-Wendroff streamline term that stabilises explicit convection", bool),
         "backflow": Param(
             1.0,
