@@ -42,6 +42,7 @@ CHANGEABLE = (
     "gas.dt_min",
     "gas.dt_max",
     "gas.drag_number",
+    "gas.pressure_passes",
     "gas.petsc_options",
     "gas.pressure_rtol",
     "gas.mass_tolerance",

@@ -191,6 +191,15 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "fourier": Param(0.15, "", "largest Fourier (viscous) number of the gas step", float, lo=0.0, lo_open=True),
         "dt_min": Param(1e-6, "s", "smallest gas time step allowed", float, lo=0.0, lo_open=True),
         "dt_max": Param(1e-3, "s", "largest gas time step allowed", float, lo=0.0, lo_open=True),
+        "pressure_passes": Param(
+            1,
+            "-",
+            "predictor-correction passes per gas step: the pressure's lag behind the drag, D/(1+D) per step "
+            "with D = K dt/(rho_g eps), becomes (D/(1+D))^passes, for one more Poisson solve per pass",
+            int,
+            lo=1,
+            hi=10,
+        ),
         "drag_number": Param(
             0.0,
             "",

@@ -219,6 +219,15 @@ def correct(q_star, g_phi, mass, rho_dt, gp, q, grad_p):  # pragma: no cover
 
 
 @njit(cache=True)
+def repredict(q_star, g_phi, mass, eps, K, rho, dt):  # pragma: no cover
+    """q* −= G φ / (ΔV (1 + K Δt/(ρ ε))) on owned rows: `predictor_update` redone after p += ρ/Δt φ."""
+    for i in range(g_phi.shape[0]):
+        c = 1.0 / (mass[i] * (1.0 + K[i] * dt / (rho * eps[i])))
+        for d in range(g_phi.shape[1]):
+            q_star[i, d] -= c * g_phi[i, d]
+
+
+@njit(cache=True)
 def max_rate(u, width, n):  # pragma: no cover
     """max_i |u_i| / Δ_i over the first n nodes [1/s]."""
     m = 0.0

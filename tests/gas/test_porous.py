@@ -97,3 +97,28 @@ def test_drag_number_limits_the_time_step():
     assert free.compute_dt() > 100 * limited.compute_dt()
     with pytest.raises(ValueError, match="drag_number"):
         channel_solver(md, U, drag_number=-1.0)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("passes", [1, 2, 3])
+def test_pressure_lags_the_drag_by_D_over_1_plus_D_per_pass(passes):
+    # uniform flow through a uniform porous channel with D = K dt/(rho eps) = 4, from p = 0: the error of the
+    # pressure gradient against Darcy's -K U/eps decays by exactly (D/(1+D))^passes per step (module docstring)
+    md = channel(0.1, 0.02, 40, 8)
+    dt, D = 2e-4, 4.0
+    K = D * RHO * EPS / dt
+    s = channel_solver(md, U, rho=RHO, mu=MU, eps=EPS, slip=True, pressure_passes=passes)
+    s.q[:, 0] = U
+    s.set_void_fraction(EPS)
+    x = owned(s, s.x)
+    inner = (x[:, 0] > 0.02) & (x[:, 0] < 0.08)
+    target = -K * U / EPS
+    errors = []
+    for _ in range(5):
+        info = s.step(dt, K=K)
+        local = np.abs(owned(s, s.grad_p)[inner, 0] - target).max(initial=0.0)
+        errors.append(MPI.COMM_WORLD.allreduce(float(local), op=MPI.MAX) / abs(target))
+    assert np.allclose(np.array(errors[1:]) / errors[:-1], (D / (1 + D)) ** passes, rtol=1e-3), errors
+    assert abs(info.mass_imbalance) < 1e-6 * RHO * info.inflow  # the last pass closes the mass balance
+    with pytest.raises(ValueError, match="pressure_passes"):
+        channel_solver(md, U, pressure_passes=0)
