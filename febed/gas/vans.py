@@ -58,8 +58,9 @@ Model choices (and why):
 * **Time step**: CFL = max |u| Δt/Δ ≤ `cfl`, Fourier = max ν_eff Δt/Δ² ≤ `fourier`, within [dt_min, dt_max];
   optionally the drag number max K Δt/(ρ ε) ≤ `drag_number` (K of the previous step), which bounds the lag
   of the pressure above (ratio D/(1 + D) per step). In a packed bed of 1 mm glass beads K/(ρε) is
-  3,000-10,000 /s: dt_max = 2e-4 s gives D ≈ 1-2, and the seed-001 coarse-mesh bed circulates the other
-  way than with D ≲ 0.5 (demos/pseudo2d/README.md).
+  3,000-10,000 /s: dt_max = 2e-4 s gives D ≈ 1-2, where the seed-001 coarse-mesh bed circulates the wrong
+  way; at D ≲ 0.5 it stops doing so, and the pressure passes below do not have that effect, so the cause
+  is elsewhere in the time staggering (demos/pseudo2d/README.md).
 * Temporal accuracy is first order overall (explicit viscous term, incremental pressure); spatial accuracy
   is second order on smooth meshes (tests/gas).
 * The viscous term keeps ∇·(εμ∇u) and drops the transpose part ∇·(εμ∇uᵀ) (zero for constant ε and
@@ -228,7 +229,8 @@ class VANSSolver:
         self._mu_cache = (None, None)
         h2 = float(np.min(self.ops.width[: self.n_owned] ** 2, initial=np.inf))
         self._h2_min = self.comm.allreduce(h2, op=MPI.MIN)
-        self._drag_rate = 0.0  # local max K/(ρ ε) of the last step [1/s] (drag-number limit)
+        self._drag_rates = np.zeros(self.n_owned)  # K/(ρ ε) of the last step per owned node [1/s] (drag number)
+        self._drag_rate = 0.0  # and its local maximum
 
     # ------------------------------------------------------------------------------------------ setup
     def _family(self) -> str:
@@ -324,7 +326,7 @@ class VANSSolver:
 
     # ------------------------------------------------------------------------------------ checkpoint
     def get_state(self) -> dict[str, np.ndarray]:
-        """Everything the next step reads, over the owned nodes: q, p, ε, ∇p, Gp and the last increment φ."""
+        """Everything the next step reads, over the owned nodes: q, p, ε, ∇p, Gp, the last increment φ (and K/(ρε))."""
         n = self.n_owned
         return {
             "q": self.q[:n].copy(),
@@ -333,6 +335,7 @@ class VANSSolver:
             "grad_p": self.grad_p[:n].copy(),
             "gp": self.gp_owned.copy(),
             "phi": self.pressure.x.array[:n].copy(),  # the warm start of the next pressure solve
+            **({"drag_rate": self._drag_rates.copy()} if self.params.drag_number > 0.0 else {}),  # next step's limit
         }
 
     def set_state(self, state: dict[str, np.ndarray], t: float) -> None:
@@ -342,6 +345,9 @@ class VANSSolver:
             f.x.array.reshape(self.n_local, -1)[:n] = np.asarray(state[name]).reshape(n, -1)
             f.x.scatter_forward()
         self.gp_owned[:] = state["gp"]
+        if "drag_rate" in state:  # the drag-number limit of the next step (absent: no limit for one step)
+            self._drag_rates = np.asarray(state["drag_rate"], dtype=float).reshape(n).copy()
+            self._drag_rate = float(np.max(self._drag_rates, initial=0.0))
         self.pressure.x.array[:] = state["phi"]
         self.pressure.x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         self.t = float(t)
@@ -451,7 +457,8 @@ class VANSSolver:
         force = self._local(0.0 if force is None else force, "force", scalar_ok=True, vector=True)
         if self.params.drag_number > 0.0:
             n = self.n_owned
-            self._drag_rate = float(np.max(K[:n] / (self.params.density * self.eps[:n]), initial=0.0))
+            self._drag_rates = K[:n] / (self.params.density * self.eps[:n])
+            self._drag_rate = float(np.max(self._drag_rates, initial=0.0))
         clock["inputs"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

@@ -122,3 +122,16 @@ def test_pressure_lags_the_drag_by_D_over_1_plus_D_per_pass(passes):
     assert abs(info.mass_imbalance) < 1e-6 * RHO * info.inflow  # the last pass closes the mass balance
     with pytest.raises(ValueError, match="pressure_passes"):
         channel_solver(md, U, pressure_passes=0)
+
+
+@pytest.mark.mpi
+def test_drag_number_limit_survives_a_restart():
+    # the limit of the next step is part of the state: a solver restored from it takes the same step
+    md = channel(0.1, 0.04, 20, 8)
+    a = channel_solver(md, U, rho=RHO, mu=MU, eps=EPS, drag_number=0.3)
+    K = np.where(a.x[:, 0] > 0.05, 4.0e4, 10.0)
+    for _ in range(2):
+        a.step(1e-5, K=K)
+    b = channel_solver(md, U, rho=RHO, mu=MU, eps=EPS, drag_number=0.3)
+    b.set_state(a.get_state(), a.t)
+    assert b.compute_dt() == a.compute_dt() == pytest.approx(0.3 * RHO * EPS / 4.0e4, rel=1e-12)
