@@ -43,6 +43,7 @@ CHANGEABLE = (
     "gas.dt_max",
     "gas.drag_number",
     "gas.pressure_passes",
+    "contact.skin",
     "gas.petsc_options",
     "gas.pressure_rtol",
     "gas.mass_tolerance",

@@ -98,6 +98,8 @@ def test_restart_refuses_changed_physics_and_reports_changes(straight, tmp_path,
     assert "gas.cfl: 0.2 -> 0.1" in capsys.readouterr().out
     assert febed(out, 0.02, "--restart") == 2  # already at its end time: nothing to do, said clearly
     assert "not before run.end_time" in capsys.readouterr().err
+    assert febed(out, 0.03, "--restart", "--set", "contact.skin=0.25") == 0  # a performance setting: accepted
+    assert "contact.skin: 0.1 -> 0.25" in capsys.readouterr().out
 
 
 KILLER = """

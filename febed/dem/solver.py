@@ -523,8 +523,15 @@ class DEM:
         other_walls = int(state.get("walls_count", -1)) != self.walls.count
         if other_walls:  # other walls (or a checkpoint from before the bounding-box planes)
             self._forget_wall_history()
+        other_skin = False
+        if self._lists_valid and P.n_owned:  # lists built with another skin (a restart that changed it): rebuild
+            skin = self.params.skin * float(P.diameter[: P.n_owned].max())
+            other_skin = not np.isclose(self.pairs.skin, skin, rtol=1e-12, atol=0.0)
+            if other_skin:
+                self._saved = self._history_keys()
+                self._lists_valid = False
         self.pos_ref = np.array(state["pos_ref"], dtype=float).reshape(-1, 3)
-        self._dirty = bool(int(state.get("dirty", 1))) or other_walls
+        self._dirty = bool(int(state.get("dirty", 1))) or other_walls or other_skin
         self._forces_valid = bool(int(state.get("forces_valid", 0)))
         self._since_sort = int(state.get("since_sort", 0))
         dt = float(state["dt"])
