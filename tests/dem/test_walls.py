@@ -248,6 +248,7 @@ def test_state_restored_with_another_skin_rebuilds_the_lists_and_keeps_the_histo
     for dem in (a, wide, same):
         dem.advance(500)
     assert wide.pairs.skin == pytest.approx(5 * a.pairs.skin, rel=1e-12)
+
     def by_gid(dem):  # the rebuild may sort the rows
         return dem.particles.pos[np.argsort(dem.particles.gid)]
 
