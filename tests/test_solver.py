@@ -4,6 +4,8 @@ import logging
 import math
 from pathlib import Path
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 
@@ -162,3 +164,23 @@ def test_pseudo2d_box_walls_are_planes(mpi_tmp_path):
     walls = walls_from_mesh(case, md)
     assert walls.facets.shape[0] == 0 and walls.plane_p.shape[0] == 5
     assert not np.any(np.isclose(walls.plane_p[:, 2], 0.25) & (walls.plane_n[:, 2] != 0))
+
+
+@pytest.mark.mpi
+def test_particle_beyond_its_ranks_cells_is_migrated_not_a_failure(mpi_tmp_path):
+    """Between two pair-list rebuilds a particle can leave its rank's owned and ghost cells (across a corner of
+    a staircase partition boundary, whose diagonal neighbour is no ghost): it is migrated at once and found."""
+    comm = MPI.COMM_WORLD
+    case = box_case(mpi_tmp_path, (0.08, 0.01, 0.02), 0.005)  # 16 columns: ranks' far ends are no ghosts
+    s = coupled(case, mpi_tmp_path, [[0.004, 0.005, 0.01]], 1e-3, 2500.0)
+    s.project()
+    assert comm.allreduce(s.dem.particles.n_owned) == 1
+    far = np.array([0.076, 0.005, 0.01])  # at the other end of the box: another rank's cells when there are two
+    if s.dem.particles.n_owned:
+        s.dem.particles.pos[0] = far
+    s.locate_particles()
+    s.check()  # no failure on any rank
+    P = s.dem.particles
+    assert comm.allreduce(P.n_owned) == 1 and comm.allreduce(s.left_outlet) == 0
+    if P.n_owned:
+        assert np.array_equal(P.pos[0], far) and P.cell[0] >= 0 and P.cell[0] < s.ma.num_owned_cells
