@@ -1,7 +1,9 @@
 """The one interface through which the DEM meets MPI: ownership, migration, ghost particles, reductions.
 
 Ownership (seed 001 sec 2.5): a particle belongs to the rank owning the mesh cell that holds its centre.
-At every pair-list rebuild (collective) the DEM calls, in this order:
+At every pair-list rebuild (collective; the coupled solver also forces one when a particle has left its
+rank's owned and ghost cells, e.g. diagonally across a corner of the partition boundary) the DEM calls, in
+this order:
 
 1. `migrate(particles, saved, wsaved)`: each owned particle is located (walk from `particles.cell`,
    `febed.coupling.locate`); FOUND in a ghost cell -> that cell's owner; OUTSIDE_LOCAL (further than the ghost
