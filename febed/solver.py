@@ -243,8 +243,8 @@ class CoupledSolver:
         c.reset_cells(P.cell[:n])  # the DEM may have reordered its rows: cells travel with the particles
         missing = c.locate(P.pos[:n])
         if self.md.comm.size > 1 and self.dem.exchange is not None:
-            beyond = int(np.count_nonzero(c.status[missing] == OUTSIDE_LOCAL)) if missing.size else 0
-            if self.md.comm.allreduce(beyond, op=MPI.SUM):
+            n_beyond = int(np.count_nonzero(c.status[missing] == OUTSIDE_LOCAL)) if missing.size else 0
+            if self.md.comm.allreduce(n_beyond, op=MPI.SUM):
                 # a particle left its rank's local cells (owned + ghost) between two migrations, e.g. across a
                 # corner of a staircase partition boundary whose diagonal neighbour is not a ghost cell:
                 # migrate now (collective; the owner is found by asking every rank), then locate again

@@ -230,7 +230,6 @@ class VANSSolver:
         h2 = float(np.min(self.ops.width[: self.n_owned] ** 2, initial=np.inf))
         self._h2_min = self.comm.allreduce(h2, op=MPI.MIN)
         self._drag_rates = np.zeros(self.n_owned)  # K/(ρ ε) of the last step per owned node [1/s] (drag number)
-        self._drag_rate = 0.0  # and its local maximum
 
     # ------------------------------------------------------------------------------------------ setup
     def _family(self) -> str:
@@ -347,7 +346,6 @@ class VANSSolver:
         self.gp_owned[:] = state["gp"]
         if "drag_rate" in state:  # the drag-number limit of the next step (absent: no limit for one step)
             self._drag_rates = np.asarray(state["drag_rate"], dtype=float).reshape(n).copy()
-            self._drag_rate = float(np.max(self._drag_rates, initial=0.0))
         self.pressure.x.array[:] = state["phi"]
         self.pressure.x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         self.t = float(t)
@@ -423,7 +421,7 @@ class VANSSolver:
         rate_c, rate_f = self._rates()
         dt = min(par.cfl / max(rate_c, 1e-300), par.fourier / max(rate_f, 1e-300))
         if par.drag_number > 0.0:
-            rate_d = self.comm.allreduce(self._drag_rate, op=MPI.MAX)
+            rate_d = self.comm.allreduce(float(np.max(self._drag_rates, initial=0.0)), op=MPI.MAX)
             dt = min(dt, par.drag_number / max(rate_d, 1e-300))
         return float(min(max(dt, par.dt_min), par.dt_max))
 
@@ -458,7 +456,6 @@ class VANSSolver:
         if self.params.drag_number > 0.0:
             n = self.n_owned
             self._drag_rates = K[:n] / (self.params.density * self.eps[:n])
-            self._drag_rate = float(np.max(self._drag_rates, initial=0.0))
         clock["inputs"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
