@@ -43,6 +43,7 @@ CHANGEABLE = (
     "gas.dt_max",
     "gas.drag_number",
     "gas.pressure_passes",
+    "gas.drag_weighted_projection",
     "contact.skin",
     "gas.petsc_options",
     "gas.pressure_rtol",

@@ -191,11 +191,20 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "fourier": Param(0.15, "", "largest Fourier (viscous) number of the gas step", float, lo=0.0, lo_open=True),
         "dt_min": Param(1e-6, "s", "smallest gas time step allowed", float, lo=0.0, lo_open=True),
         "dt_max": Param(1e-3, "s", "largest gas time step allowed", float, lo=0.0, lo_open=True),
+        "drag_weighted_projection": Param(
+            False,
+            "-",
+            "pressure equation and velocity correction weighted by 1/(1+D), D = K dt/(rho_g eps), as the predictor's "
+            "implicit drag: the pressure follows the drag within the step; false: the constant Laplacian, whose "
+            "pressure lags by D/(1+D) per step (changes results at D of order 1)",
+            bool,
+        ),
         "pressure_passes": Param(
             1,
             "-",
-            "predictor-correction passes per gas step: the pressure's lag behind the drag, D/(1+D) per step "
-            "with D = K dt/(rho_g eps), becomes (D/(1+D))^passes, for one more Poisson solve per pass",
+            "predictor-correction passes per gas step; without the drag-weighted projection the pressure's lag "
+            "behind the drag, D/(1+D) per step with D = K dt/(rho_g eps), becomes (D/(1+D))^passes, for one "
+            "more Poisson solve per pass",
             int,
             lo=1,
             hi=10,
@@ -204,7 +213,7 @@ SCHEMA: dict[str, dict[str, Param]] = {
             0.0,
             "",
             "largest drag number K dt/(rho_g eps) of a gas step, K the nodal momentum-exchange coefficient of "
-            "the previous step (0: no limit); the pressure increment ignores K and lags by D/(1+D) per step",
+            "the previous step (0: no limit)",
             float,
             lo=0.0,
         ),

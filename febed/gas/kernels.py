@@ -209,12 +209,16 @@ def pressure_rhs(div, mass, eps, eps_old, dt, out):  # pragma: no cover
 
 
 @njit(cache=True)
-def correct(q_star, g_phi, mass, rho_dt, gp, q, grad_p):  # pragma: no cover
-    """Correction (seed 001 eq 37) on owned rows: q = q* − G φ/ΔV; G p += ρ/Δt G φ; ∇p = G p/ΔV."""
+def correct(q_star, g_phi, mass, w, rho_dt, gp, q, grad_p):  # pragma: no cover
+    """Correction (seed 001 eq 37) on owned rows: q = q* − w G φ/ΔV; G p += ρ/Δt G φ; ∇p = G p/ΔV.
+
+    w = 1/(1 + K Δt/(ρ ε)) with the drag-weighted projection, 1 without.
+    """
     for i in range(g_phi.shape[0]):
+        c = w[i] / mass[i]
         for d in range(g_phi.shape[1]):
             gp[i, d] += rho_dt * g_phi[i, d]
-            q[i, d] = q_star[i, d] - g_phi[i, d] / mass[i]
+            q[i, d] = q_star[i, d] - c * g_phi[i, d]
             grad_p[i, d] = gp[i, d] / mass[i]
 
 
@@ -239,3 +243,52 @@ def max_rate(u, width, n):  # pragma: no cover
         if r > m:
             m = r
     return m
+
+
+# --- the drag-weighted pressure operator (VANSParameters.drag_weighted_projection; vans module docstring)
+@njit(cache=True)
+def weighted_laplacian(indptr, indices, lap, w, out):  # pragma: no cover
+    """Edge-weighted Laplacian rows: out_ij = L_ij (w_i + w_j)/2 (j ≠ i), out_ii = −Σ_{j≠i} out_ij.
+
+    `lap` holds the owned rows of L = ∫ ∇φ_i·∇φ_j dx (rows sum to zero), `w` the weights over the extended
+    columns; the result is symmetric, has zero row sums and equals L for w = 1.
+    """
+    for i in range(indptr.size - 1):
+        s = 0.0
+        kd = -1
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            if j == i:
+                kd = k
+            else:
+                v = lap[k] * 0.5 * (w[i] + w[j])
+                out[k] = v
+                s += v
+        out[kd] = -s
+
+
+@njit(cache=True)
+def apply_dirichlet_rows(indptr, indices, vals, x, keep, y):  # pragma: no cover
+    """Owned rows of y = A x, A the matrix `vals` with the Dirichlet rows and columns of L's solver.
+
+    A unit row where keep[i] == 0, and the columns with keep[j] == 0 dropped elsewhere (`x` extended).
+    """
+    for i in range(indptr.size - 1):
+        if keep[i] == 0.0:
+            y[i] = x[i]
+            continue
+        s = 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            s += vals[k] * keep[j] * x[j]
+        y[i] = s
+
+
+@njit(cache=True)
+def rows_dot(indptr, indices, vals, rows, x):  # pragma: no cover
+    """Σ_{i in rows} Σ_j A_ij x_j for the matrix `vals` (owned rows, extended columns)."""
+    s = 0.0
+    for i in rows:
+        for k in range(indptr[i], indptr[i + 1]):
+            s += vals[k] * x[indices[k]]
+    return s

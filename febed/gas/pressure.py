@@ -1,5 +1,8 @@
 """The pressure-increment Poisson solve: a constant stiffness matrix and its AMG preconditioner, set up once.
 
+(Optionally the operator is the drag-weighted Laplacian of each step, `_WeightedOperator`, still
+preconditioned by the constant matrix's AMG; `VANSParameters.drag_weighted_projection`.)
+
 Following YALES2 (DESIGN.md "Data flow" step 3), the gas momentum carries −∇P and the particles −V_p∇P,
 so the operator of seed 001 eq 39 is the constant Laplacian L_ij = ∫ ∇φ_i·∇φ_j dx. It is assembled once,
 with unit rows at the outlet (pressure) nodes, and its KSP (default CG + algebraic multigrid) is set up once;
@@ -24,6 +27,8 @@ import dolfinx.la
 import numpy as np
 import ufl
 
+from febed.gas import kernels
+
 # CG + smoothed-aggregation AMG (Trilinos ML through PETSc) with one smoothing sweep per level: the
 # fastest of hypre BoomerAMG (several settings), GAMG and ML on the seed-001 intermediate mesh with a
 # bubbling-bed right-hand-side sequence (benchmarks/gas_step.py; ~23 ms vs ~39 ms GAMG, ~55 ms BoomerAMG
@@ -43,10 +48,52 @@ class PressureSolveError(RuntimeError):
     """The pressure Poisson solve did not converge (raised on every rank: the solve is collective)."""
 
 
-class PressureSolver:
-    """Solve L φ = b for the scaled pressure increment φ = Δt δP / ρ, b given on the owned nodes."""
+class _WeightedOperator:
+    """PETSc Python-matrix context: the edge-weighted Laplacian L_w (`kernels.weighted_laplacian`).
 
-    def __init__(self, Q, dirichlet_dofs: np.ndarray, has_dirichlet: bool, prefix: str):
+    It has L's Dirichlet rows (unit) and columns (dropped) and is applied with the CSR rows of `NodalOperators`.
+    """
+
+    def __init__(self, ops, dirichlet_dofs: np.ndarray):
+        self.ops = ops
+        self.lap = np.ascontiguousarray(ops.tens[:, : ops.gdim].sum(axis=1))
+        self.vals = self.lap.copy()
+        imap = ops.Q.dofmap.index_map
+        self.xg = dolfinx.la.create_petsc_vector(imap, 1)
+        self.xl = np.empty(ops.n_local)
+        keep = dolfinx.la.create_petsc_vector(imap, 1)
+        with keep.localForm() as loc:
+            loc.set(1.0)
+            loc.array[np.asarray(dirichlet_dofs, dtype=np.int64)] = 0.0
+        keep.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        with keep.localForm() as loc:
+            local = loc.array.copy()
+        self.keep = ops.extension.extend("keep", keep, local).copy()
+        keep.destroy()
+
+    def set_weights(self, w_ext: np.ndarray) -> None:
+        kernels.weighted_laplacian(self.ops.indptr, self.ops.indices, self.lap, w_ext, self.vals)
+
+    def extended(self, x: PETSc.Vec) -> np.ndarray:
+        """The values of `x` (owned) over the owned, ghost and extra columns (collective)."""
+        self.xg.array[:] = x.array_r
+        self.xg.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        with self.xg.localForm() as loc:
+            self.xl[:] = loc.array_r
+        return self.ops.extension.extend("weighted", self.xg, self.xl)
+
+    def mult(self, mat, x, y):  # PETSc callback: y = A_w x
+        kernels.apply_dirichlet_rows(self.ops.indptr, self.ops.indices, self.vals, self.extended(x), self.keep, y.array)
+
+
+class PressureSolver:
+    """Solve L φ = b for the scaled pressure increment φ = Δt δP / ρ, b given on the owned nodes.
+
+    With `ops` (the gas step's `NodalOperators`) the operator can be the drag-weighted Laplacian instead
+    (`set_weights`), solved by CG preconditioned with the constant L's AMG, which is still set up once.
+    """
+
+    def __init__(self, Q, dirichlet_dofs: np.ndarray, has_dirichlet: bool, prefix: str, ops=None):
         comm = Q.mesh.comm
         v, w = ufl.TestFunction(Q), ufl.TrialFunction(Q)
         bcs = [dolfinx.fem.dirichletbc(PETSc.ScalarType(0.0), dirichlet_dofs, Q)] if has_dirichlet else []
@@ -68,7 +115,17 @@ class PressureSolver:
                 opts[prefix + key] = val
         self.ksp = PETSc.KSP().create(comm)
         self.ksp.setOptionsPrefix(prefix)
+        self.weighted = None
+        self.op = self.A  # the operator of the solve
+        if ops is not None:
+            self.weighted = _WeightedOperator(ops, dirichlet_dofs)
+            n, N = imap.size_local, imap.size_global
+            self.op = PETSc.Mat().createPython(((n, N), (n, N)), context=self.weighted, comm=comm)
+            self.op.setUp()
+            if self.nullspace is not None:
+                self.op.setNullSpace(self.nullspace)
         self.ksp.setOperators(self.A)
+        self._current = self.A
         try:
             self.ksp.setFromOptions()
         except PETSc.Error:
@@ -81,15 +138,30 @@ class PressureSolver:
             self.ksp.setInitialGuessNonzero(True)  # warm start from the previous increment
             if not opts.hasName(prefix + "ksp_norm_type"):
                 self.ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)  # tolerances on the true residual
+        if self.weighted is not None and self.ksp.getType() == PETSc.KSP.Type.PREONLY:
+            raise ValueError(
+                "gas.drag_weighted_projection needs an iterative pressure solver: the PETSc options set "
+                f"-{prefix}ksp_type preonly (one preconditioner application solves the constant Laplacian, not "
+                "the weighted one); remove it or set drag_weighted_projection = false"
+            )
         self.ksp.setUp()
-        self.setup_count = 1  # the operator never changes: PETSc reuses this setup in every solve
+        self.setup_count = 1  # the preconditioner's matrix never changes: PETSc reuses this setup in every solve
         self.comm = comm
 
-    def solve(self, rhs_owned: np.ndarray, rtol: float, atol: float) -> tuple[np.ndarray, int]:
+    def set_weights(self, w_ext: np.ndarray) -> None:
+        """Make the operator the edge-weighted Laplacian L_w for the weights `w_ext` (extended nodal array)."""
+        self.weighted.set_weights(w_ext)
+
+    def solve(self, rhs_owned: np.ndarray, rtol: float, atol: float, weighted: bool = False) -> tuple[np.ndarray, int]:
         """Write b (owned rows), zero the pressure rows, solve from the last φ; φ over local dofs, iterations.
 
-        Converged when the true residual ||b − Lφ||_2 ≤ max(rtol ||b||_2, atol).
+        Converged when the true residual ||b − Lφ||_2 ≤ max(rtol ||b||_2, atol); L is the weighted operator
+        of the last `set_weights` if `weighted` (collective: the same on every rank).
         """
+        op = self.op if weighted else self.A
+        if op is not self._current:
+            self.ksp.setOperators(op, self.A)  # the preconditioner stays the constant L's: no new setup
+            self._current = op
         self.ksp.setTolerances(rtol=rtol, atol=atol)
         self.b.array[:] = rhs_owned
         self.b.array[self.bc_rows] = 0.0
@@ -110,7 +182,7 @@ class PressureSolver:
     def residual_sum(self) -> float:
         """Global Σ_i (b − L φ)_i over non-pressure rows: the discrete continuity defect of the last solve."""
         r = self.b.duplicate()
-        self.A.mult(self.x, r)
+        self._current.mult(self.x, r)
         r.aypx(-1.0, self.b)
         r.array[self.bc_rows] = 0.0
         s = self.comm.allreduce(float(r.array.sum()), op=MPI.SUM)
@@ -121,3 +193,6 @@ class PressureSolver:
         """Free the PETSc objects (collective)."""
         for obj in (self.ksp, self.A, self.b, self.x):
             obj.destroy()
+        if self.weighted is not None:
+            self.op.destroy()
+            self.weighted.xg.destroy()

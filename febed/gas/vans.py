@@ -32,10 +32,11 @@ Model choices (and why):
   β ρ/2 min(u·n, 0) u, which removes at least the convective energy influx for β ≥ 1 and is zero where
   gas leaves. At a node it is the force −c_i u_i, c_i = β ρ/2 max(−q_i·B_i, 0)/ΔV_i (B_i = ∫φ_i n ds),
   evaluated with q^n and added to the implicit diagonal like K (`backflow` = β, default 1; 0 = off).
-* **Pressure** (seed 001 eqs 37-39, YALES2 form): the gas carries the full −∇P, so the Poisson operator is
-  the constant Laplacian L; with φ = Δt δP/ρ,  L φ = −(Dq* + ΔV (ε^{n+1} − ε^n)/Δt), D the Galerkin
-  divergence. It includes the ∂ε/∂t source so that continuity holds node by node *in flux form*:
-  Dq* + Lφ + ΔV Δε/Δt = 0 on every non-outlet node (to the KSP tolerance).
+* **Pressure** (seed 001 eqs 37-39, YALES2 form): the gas carries the full −∇P, so without drag the Poisson
+  operator is the constant Laplacian L (with drag L_w, below); with φ = Δt δP/ρ,
+  L φ = −(Dq* + ΔV (ε^{n+1} − ε^n)/Δt), D the Galerkin divergence. It includes the ∂ε/∂t source so that
+  continuity holds node by node *in flux form*: Dq* + Lφ + ΔV Δε/Δt = 0 on every non-outlet node (to the
+  KSP tolerance).
 * **Correction**: q^{n+1} = q* − ΔV⁻¹ G φ (G the Galerkin gradient), P^{n+1} = P^n + ρφ/Δt. Using the
   compact L with the nodal gradient G is the classical approximate projection (no checkerboard modes);
   the nodal q^{n+1} is divergence-free only up to (L − D ΔV⁻¹ G)φ = O(Δt h² ∇⁴P).
@@ -47,20 +48,28 @@ Model choices (and why):
   Σ_out (Dq* + Lφ + ΔV Δε/Δt)_i. With these, inflow − outflow − d/dt∫ε dV equals the Poisson residual
   summed over the non-outlet nodes: it closes to the solver tolerance. `outflow_direct` = ∮_out q^{n+1}·n
   is also reported (it differs by the approximate-projection defect).
-* **Drag and the constant Laplacian**: the pressure increment ignores K, so after a change the pressure
-  relaxes geometrically with ratio D/(1 + D) per step, D = K Δt/(ρε): always bounded, slow when D ≫ 1.
-  With `pressure_passes` = m > 1 the step repeats the predictor with the corrected pressure (only −∇p changed:
-  q* −= G φ/(ΔV (1 + D)), no new convection or viscous terms) and solves the Poisson equation again, m times
-  in all: the lag becomes (D/(1 + D))^m per step, for one more Poisson solve per pass. The mass balance
+* **Drag and the pressure equation** (`drag_weighted_projection`, off by default): the predictor treats the drag
+  implicitly, so the momentum equation's response to a pressure increment is divided by 1 + D_i,
+  D_i = K_i Δt/(ρ ε_i). The projection carries the same factor: w_i = 1/(1 + D_i), the operator is the
+  edge-weighted Laplacian (L_w)_ij = L_ij (w_i + w_j)/2 (symmetric, zero row sums, L for w = 1;
+  `kernels.weighted_laplacian`), and the correction is q = q* − w ΔV⁻¹ G φ. The step then ends with a
+  pressure that balances this step's drag: through a uniform porous channel Darcy's gradient is reached
+  in one step (tests/gas/test_porous.py). L_w changes every step; it is applied matrix-free
+  (`pressure._WeightedOperator`) and preconditioned by the AMG of the constant L, still set up once, at
+  the cost of more CG iterations where w varies. Without it (the constant Laplacian alone) the pressure
+  relaxes geometrically with ratio D/(1 + D) per step after any change of the drag: bounded, but at D ≈
+  1-2 a bubbling bed's pressure trails its drag by most of a step, and the seed-001 coarse-mesh bed
+  circulates the wrong way at Δt = 2e-4 s, but not at 5e-5 s nor with ten passes (below) at 2e-4 s; the
+  drag-weighted projection alone does not remove that (demos/pseudo2d/README.md). With
+  `pressure_passes` = m > 1 the step repeats the predictor with the corrected pressure (only −∇p
+  changed: q* −= G φ/(ΔV (1 + D)), no new convection or viscous terms) and solves the Poisson equation
+  again, m times in all: the plain projection's lag becomes (D/(1 + D))^m per step. The mass balance
   below holds for the last pass.
 * **LES**: Smagorinsky ν_t = (C_s Δ)² |S|, Δ = (mean volume of the cells around the node)^(1/d),
   |S| from the lumped nodal velocity gradient (switch `les`).
 * **Time step**: CFL = max |u| Δt/Δ ≤ `cfl`, Fourier = max ν_eff Δt/Δ² ≤ `fourier`, within [dt_min, dt_max];
-  optionally the drag number max K Δt/(ρ ε) ≤ `drag_number` (K of the previous step), which bounds the lag
-  of the pressure above (ratio D/(1 + D) per step). In a packed bed of 1 mm glass beads K/(ρε) is
-  3,000-10,000 /s: dt_max = 2e-4 s gives D ≈ 1-2, where the seed-001 coarse-mesh bed circulates the wrong
-  way; at D ≲ 0.5 it stops doing so, and the pressure passes below do not have that effect, so the cause
-  is elsewhere in the time staggering (demos/pseudo2d/README.md).
+  optionally the drag number max K Δt/(ρ ε) ≤ `drag_number` (K of the previous step). In a packed bed of
+  1 mm glass beads K/(ρε) is 3,000-10,000 /s: dt_max = 2e-4 s gives D ≈ 1-2.
 * Temporal accuracy is first order overall (explicit viscous term, incremental pressure); spatial accuracy
   is second order on smooth meshes (tests/gas).
 * The viscous term keeps ∇·(εμ∇u) and drops the transpose part ∇·(εμ∇uᵀ) (zero for constant ε and
@@ -97,7 +106,8 @@ class VANSParameters:
     dt_min: float = 1e-6
     dt_max: float = 1e-3
     drag_number: float = 0.0  # largest K Δt/(ρ ε) of a step (0: no limit), see "Time step" in the module docstring
-    pressure_passes: int = 1  # predictor-correction passes per step, see "Drag and the constant Laplacian"
+    pressure_passes: int = 1  # predictor-correction passes per step, see "Drag and the pressure equation"
+    drag_weighted_projection: bool = False  # pressure operator and correction weighted by 1/(1 + KΔt/(ρε))
     gravity: float = 0.0  # magnitude [m/s^2], along -z (3D) / -y (2D)
     boundaries: dict[str, BoundarySpec] = field(default_factory=dict)
     taylor_galerkin: bool = True
@@ -221,7 +231,12 @@ class VANSSolver:
         self._q.x.scatter_forward()
         self._update_u()
         # --- pressure solver: constant Laplacian, AMG set up once
-        self.pressure = PressureSolver(self.Q, self.bc.pressure_dofs, self.bc.has_outlet, params.prefix + "pressure_")
+        self.pressure = PressureSolver(
+            self.Q, self.bc.pressure_dofs, self.bc.has_outlet, params.prefix + "pressure_",
+            ops=self.ops if params.drag_weighted_projection else None,
+        )  # fmt: skip
+        self._weights = dolfinx.fem.Function(self.Q)  # 1/(1 + K Δt/(ρ ε)) of the step (drag-weighted projection)
+        self._weighted = False  # this step's projection is drag-weighted (a drag K was given)
         self._outlet_rows = self.bc.pressure_dofs[self.bc.pressure_dofs < self.n_owned]
         self._outlet_stiffness = self.ops.stiffness_rows(self._outlet_rows)
         self._sqrt_n = np.sqrt(self.comm.allreduce(self.n_owned, op=MPI.SUM))
@@ -266,6 +281,7 @@ class VANSSolver:
             dt_max=g.dt_max,
             drag_number=g.drag_number,
             pressure_passes=g.pressure_passes,
+            drag_weighted_projection=g.drag_weighted_projection,
             gravity=case.run.gravity,
             boundaries=specs,
         )
@@ -450,6 +466,7 @@ class VANSSolver:
             e = self._local(eps, "eps", scalar_ok=True)
             self._check_eps(e)
             self.eps[:] = e
+        self._weighted = self.params.drag_weighted_projection and K is not None
         K = self._local(0.0 if K is None else K, "K", scalar_ok=True)
         Kv = self._local(0.0 if Kv is None else Kv, "Kv", scalar_ok=True, vector=True)
         force = self._local(0.0 if force is None else force, "force", scalar_ok=True, vector=True)
@@ -511,6 +528,14 @@ class VANSSolver:
         kernels.predictor_update(
             self.q, self._rhs, ops.mass, self.eps, K, Kv, force, self.g, par.density, dt, q_star[: self.n_owned]
         )
+        w = self._weights.x.array
+        if self._weighted:  # the predictor's implicit diagonal ρ/Δt + K/ε, relative to ρ/Δt
+            n = self.n_owned
+            w[:n] = 1.0 / (1.0 + K[:n] * dt / (par.density * self.eps[:n]))
+            self._weights.x.scatter_forward()
+            self.pressure.set_weights(ops.extension.extend("w", self._weights.vector, w))
+        else:
+            w[:] = 1.0
         self.bc.apply_velocity(q_star, self.t + dt)
         self._scratch_vector.x.scatter_forward()
         return q_star
@@ -549,11 +574,16 @@ class VANSSolver:
         flux, storage_rate = float(buf[0]), float(buf[1])
         iterations = 0
         for _ in range(4):
-            self.phi, its = self.pressure.solve(self._b, rtol, atol)
+            self.phi, its = self.pressure.solve(self._b, rtol, atol, weighted=self._weighted)
             self.phi_ext = self.ops.extension.extend("phi", self.pressure.x, self.phi)
             iterations += its
             # mass balance: exact inflow; outflow through the outlet faces of the outlet control volumes
-            corr = c.allreduce(float(np.sum(self._outlet_stiffness @ self.phi_ext - self._b[self._outlet_rows])))
+            if self._weighted:
+                lw = self.pressure.weighted.vals
+                flux_corr = kernels.rows_dot(ops.indptr, ops.indices, lw, self._outlet_rows, self.phi_ext)
+            else:
+                flux_corr = float(np.sum(self._outlet_stiffness @ self.phi_ext))
+            corr = c.allreduce(flux_corr - float(np.sum(self._b[self._outlet_rows])))
             outflow = flux - corr + inflow
             # safety net: CG's recursive residual may drift from the true one; tighten and continue if so
             if inflow <= 0.0 or abs(inflow - outflow - storage_rate) <= par.mass_tolerance * inflow:
@@ -567,7 +597,8 @@ class VANSSolver:
         """Velocity correction (seed 001 eq 37): q = q* − ΔV⁻¹ G φ, then the boundary conditions."""
         par, ops = self.params, self.ops
         kernels.gradient(ops.indptr, ops.indices, ops.grad, self.phi_ext, self._g_phi)
-        kernels.correct(q_star, self._g_phi, ops.mass, par.density / dt, self.gp_owned, self.q, self.grad_p)
+        w = self._weights.x.array
+        kernels.correct(q_star, self._g_phi, ops.mass, w, par.density / dt, self.gp_owned, self.q, self.grad_p)
         self.bc.apply_velocity(self.q, self.t + dt)
         self._q.x.scatter_forward()
         self._update_u()
