@@ -16,6 +16,7 @@ With MPI every nodal vector is accumulated over ranks (reverse scatter, add) bef
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -137,13 +138,10 @@ class NodalOperators:
         """Geometric dimension."""
         return self.grad.shape[1]
 
-    def stiffness_rows(self, rows: np.ndarray):
-        """The rows `rows` (owned) of the unmodified stiffness ∫ ∇φ_i·∇φ_j dx as a scipy CSR (n_rows, n_ext)."""
-        import scipy.sparse
-
-        lap = self.tens[:, : self.gdim].sum(axis=1)
-        full = scipy.sparse.csr_matrix((lap, self.indices, self.indptr), shape=(self.n_owned, self.n_ext))
-        return full[np.asarray(rows, dtype=np.int64)]
+    @cached_property
+    def laplacian(self) -> np.ndarray:
+        """Values (nnz,) of the unmodified stiffness ∫ ∇φ_i·∇φ_j dx in the shared CSR structure (owned rows)."""
+        return np.ascontiguousarray(self.tens[:, : self.gdim].sum(axis=1))
 
 
 def build_operators(mesh) -> NodalOperators:

@@ -56,8 +56,7 @@ class _WeightedOperator:
 
     def __init__(self, ops, dirichlet_dofs: np.ndarray):
         self.ops = ops
-        self.lap = np.ascontiguousarray(ops.tens[:, : ops.gdim].sum(axis=1))
-        self.vals = self.lap.copy()
+        self.vals = ops.laplacian.copy()
         imap = ops.Q.dofmap.index_map
         self.xg = dolfinx.la.create_petsc_vector(imap, 1)
         self.xl = np.empty(ops.n_local)
@@ -72,7 +71,7 @@ class _WeightedOperator:
         keep.destroy()
 
     def set_weights(self, w_ext: np.ndarray) -> None:
-        kernels.weighted_laplacian(self.ops.indptr, self.ops.indices, self.lap, w_ext, self.vals)
+        kernels.weighted_laplacian(self.ops.indptr, self.ops.indices, self.ops.laplacian, w_ext, self.vals)
 
     def extended(self, x: PETSc.Vec) -> np.ndarray:
         """The values of `x` (owned) over the owned, ghost and extra columns (collective)."""
