@@ -35,13 +35,16 @@ from febed.gas import kernels
 # per warm-started solve on this machine). Falls back to GAMG when PETSc was built without ML. On more
 # than one rank the default is GAMG (19-21 ms per gas step on 2 ranks against 17 ms with ML): with Debian's
 # PETSc 3.18 and ML, a process under `mpirun -n 2` that sets up a few ML solvers corrupts its heap and
-# aborts (SEGV in KSPSetUp at the 2nd to 10th solver kept alive, reproduced; serially 60 are fine).
+# aborts (SEGV or "malloc(): invalid size" at the 2nd to 10th solver kept alive, reproduced again in
+# session 8; serially 60 are fine). GAMG without the squared graph on the first level
+# (`pc_gamg_square_graph 0`) coarsens less aggressively: fewer iterations; on 2 ranks the fluidized C2's gas
+# took 4.30 instead of 4.80 min per simulated second (ML: 4.01), the start-up window 2.08 instead of 2.26.
 DEFAULT_OPTIONS = {
     "ksp_type": "cg",
     "pc_type": "ml",
     "mg_levels_ksp_max_it": 1,
 }
-FALLBACK_OPTIONS = {"pc_type": "gamg"}
+FALLBACK_OPTIONS = {"pc_type": "gamg", "pc_gamg_square_graph": 0}
 
 
 class PressureSolveError(RuntimeError):
