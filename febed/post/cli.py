@@ -38,6 +38,13 @@ def add_post_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--heights", type=float, nargs="+", default=[0.092], metavar="Z/H", help="profile heights z/H (0.092)"
     )
+    p.add_argument(
+        "--bubble-alpha",
+        type=float,
+        default=0.15,
+        metavar="A",
+        help="a bin whose instantaneous solid fraction is below A is bubble (bubble_frequency; default 0.15)",
+    )
     p.add_argument("--no-figures", action="store_true", help="CSV tables only")
     p.add_argument("-o", "--output", help="output folder (default RUN_DIR/post)")
     return p
@@ -63,6 +70,7 @@ def cmd_post(args) -> int:
         heights=tuple(args.heights),
         figures=not args.no_figures,
         out=args.output,
+        bubble_alpha=args.bubble_alpha,
     )
     v = res.values
     print(
@@ -70,6 +78,12 @@ def cmd_post(args) -> int:
         f"{v['probe_rows']} probe rows; mean dp_bed = {v['dp_bed_mean']:.1f} Pa "
         f"({v['dp_bed_over_weight']:.3f} x bed weight/area), bed height {1e3 * v['bed_height_mean']:.1f} mm"
     )
+    if "bed_flux_centre/rhoUf" in v:
+        print(
+            f"  bed-averaged vertical solid flux / rho U_f: centre {v['bed_flux_centre/rhoUf']:+.1f}, "
+            f"walls {v['bed_flux_walls/rhoUf']:+.1f}; bubble fraction {v['bubble_fraction']:.3f}; "
+            f"q_p^2/U_f^2 in the bed {v['q2_bed/Uf2']:.4f}"
+        )
     for f in res.files:
         print(f"  wrote {f}")
     return 0

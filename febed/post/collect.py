@@ -30,7 +30,8 @@ def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict
     row.update({
         "t_reached": nan, "dp_bed_mean": nan, "dp_bed_std": nan, "weight_per_area": nan, "dp_bed_over_weight": nan,
         "bed_height_mean": nan, "bed_height_std": nan, "bed_height_over_H": nan, "snapshots": 0,
-        "flux_centre/rhoUf": nan, "flux_walls/rhoUf": nan,
+        "flux_centre/rhoUf": nan, "flux_walls/rhoUf": nan, "bed_flux_centre/rhoUf": nan, "bed_flux_walls/rhoUf": nan,
+        "bubble_fraction": nan, "q2_bed/Uf2": nan,
     })  # fmt: skip
     if state == "new":
         return row, None
@@ -54,6 +55,7 @@ def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict
         window = (t_first + 0.5 * (t_last - t_first), t_last)
     profile = None
     volume = nan
+    avg = None
     if fields and snaps:
         from febed.post.fields import average_fields
 
@@ -82,6 +84,13 @@ def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict
             "dp_bed_over_weight": sm.dp_ratio, "bed_height_mean": sm.bed_height_mean,
             "bed_height_std": sm.bed_height_std, "bed_height_over_H": sm.bed_height_mean / info.height,
         })  # fmt: skip
+        h = sm.bed_height_mean
+        if avg is not None and math.isfinite(h):  # the bed's loops, bubbles and agitation (seed 001 Figs 14-17)
+            s = avg.scales()
+            c, w = avg.circulation(h)
+            row["bed_flux_centre/rhoUf"], row["bed_flux_walls/rhoUf"] = c / s["rhoU_f"], w / s["rhoU_f"]
+            row["bubble_fraction"] = avg.bubble_fraction(0.8 * h)
+            row["q2_bed/Uf2"] = avg.bed_agitation(h) / s["U_f"] ** 2
     return row, profile
 
 
@@ -102,6 +111,8 @@ def _figures(study, rows: list[dict], profiles: dict, height: float, out: Path) 
         ("bed_height_over_H", "bed height / H"),
         ("flux_centre/rhoUf", f"solid flux/ρU_f, centre, z/H={height:g}"),
         ("flux_walls/rhoUf", f"solid flux/ρU_f, walls, z/H={height:g}"),
+        ("bubble_fraction", "bubble fraction below 0.8 H_bed"),
+        ("q2_bed/Uf2", r"$q_p^2/U_f^2$ in the bed"),
     ]
     quantities = [(q, lab) for q, lab in quantities if any(math.isfinite(r[q]) for r in rows)]
     for p in varied if quantities else []:

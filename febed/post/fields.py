@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from febed.post.grid import Grid, TimeAverage, bin_sums
+from febed.post.grid import BUBBLE_ALPHA, Grid, TimeAverage, bin_sums
 from febed.post.rundata import RunInfo, _get, list_snapshots, read_case, read_snapshot, run_info, select_window
 
-QUANTITIES = ("alpha_p", "mass_flux_x", "mass_flux_z", "velocity_x", "velocity_z", "q2")
+QUANTITIES = ("alpha_p", "mass_flux_x", "mass_flux_z", "velocity_x", "velocity_z", "q2", "bubble_frequency")
 
 
 def default_bins(run_dir: str | Path, info: RunInfo) -> tuple[int, int]:
@@ -68,6 +68,8 @@ class AveragedFields:
         velocity: solid-volume-weighted mean particle velocity (n0, n1, 3) m/s.
         q2: agitation energy q_p² (n0, n1) m^2/s^2.
         solid_volume: mean total particle volume in the snapshots (m^3).
+        bubble_frequency: share of the snapshots in which each bin's α_p was below `bubble_alpha` (n0, n1).
+        bubble_alpha: that threshold.
     """
 
     info: RunInfo
@@ -81,6 +83,8 @@ class AveragedFields:
     velocity: np.ndarray
     q2: np.ndarray
     solid_volume: float
+    bubble_frequency: np.ndarray | None = None
+    bubble_alpha: float = BUBBLE_ALPHA
     extra: dict = field(default_factory=dict)
 
     def quantity(self, name: str) -> np.ndarray:
@@ -93,6 +97,7 @@ class AveragedFields:
             "velocity_x": self.velocity[..., 0],
             "velocity_z": self.velocity[..., v],
             "q2": self.q2,
+            "bubble_frequency": self.bubble_frequency,
         }
         if name not in table:
             raise ValueError(f"quantity: expected one of {QUANTITIES}, got {name!r}")
@@ -130,6 +135,22 @@ class AveragedFields:
         side = (x < wall) | (x > 1.0 - wall)
         return (float(col[mid].mean()) if mid.any() else math.nan, float(col[side].mean()) if side.any() else math.nan)
 
+    def bubble_fraction(self, below: float) -> float:
+        """The mean bubble frequency of the bins whose centre lies below `below` (m above the bottom).
+
+        The share of that part of the bed which is bubble, averaged over the snapshots: with `below` ≈ 0.8
+        times the bed height, 0 for a bed without bubbles (seed 001 Fig 15, frictionless particles).
+        """
+        zc = self.grid.centres(1) - self.grid.lo[1]
+        rows = zc < below
+        return float(self.bubble_frequency[:, rows].mean()) if rows.any() else math.nan
+
+    def bed_agitation(self, bed_height: float) -> float:
+        """Solid-volume-weighted mean q_p² (m²/s²) of the bins whose centre lies below `bed_height` (m)."""
+        rows = self.grid.centres(1) - self.grid.lo[1] < bed_height
+        a = self.alpha_p[:, rows]
+        return float((self.q2[:, rows] * a).sum() / a.sum()) if a.sum() > 0 else math.nan
+
     def scales(self) -> dict[str, float]:
         """Seed 001 §4 scales: L, D, H (m), ρU_f (kg/m^2/s), U_f (m/s), d_p/U_f (s)."""
         i = self.info
@@ -151,6 +172,7 @@ def average_fields(
     agitation: str = "cell",
     box: tuple | None = None,
     snapshots: list[tuple[float, Path]] | None = None,
+    bubble_alpha: float = BUBBLE_ALPHA,
 ) -> AveragedFields:
     """Time-averaged (over `window`, s; default the last half) depth-averaged particle fields of a run.
 
@@ -162,12 +184,13 @@ def average_fields(
         agitation: "cell" (seed 001) or "window": the mean velocity u' is taken about.
         box: ((xmin, ymin, zmin), (xmax, ymax, zmax)) to override the domain box.
         snapshots: (t, path) list to use instead of the run's particle output (tests).
+        bubble_alpha: bins below this instantaneous α_p count as bubble (`bubble_frequency`).
     """
     info = run_info(run_dir, box)
     snaps = snapshots if snapshots is not None else list_snapshots(run_dir)
     chosen, window = select_window(snaps, window)
     grid = make_grid(info, bins or default_bins(run_dir, info))
-    acc = TimeAverage(grid, info.rho_p)
+    acc = TimeAverage(grid, info.rho_p, bubble_alpha)
     vol = 0.0
     for t, path in chosen:
         a = read_snapshot(path)
@@ -190,4 +213,6 @@ def average_fields(
         velocity=res["velocity"],
         q2=res["q2"],
         solid_volume=vol / acc.count,
+        bubble_frequency=res["bubble_frequency"],
+        bubble_alpha=bubble_alpha,
     )

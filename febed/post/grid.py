@@ -139,13 +139,22 @@ def snapshot_fields(grid: Grid, sums: BinSums, rho_p: float) -> dict[str, np.nda
     return {"alpha_p": sums.s0 / dv, "mass_flux": rho_p * sums.s1 / dv, "velocity": vel, "q2": q2}
 
 
+BUBBLE_ALPHA = 0.15  # a bin with α_p below this in a snapshot is bubble (ε > 0.85)
+
+
 class TimeAverage:
     """Accumulates snapshots and gives the time-averaged fields (see `result` for the definitions)."""
 
-    def __init__(self, grid: Grid, rho_p: float):
-        """Empty accumulator on `grid` for particles of density `rho_p` (kg/m^3)."""
+    def __init__(self, grid: Grid, rho_p: float, bubble_alpha: float = BUBBLE_ALPHA):
+        """Empty accumulator on `grid` for particles of density `rho_p` (kg/m^3).
+
+        bubble_alpha: a bin whose instantaneous α_p is below it counts as bubble (void) in that snapshot.
+        """
+        if not 0.0 < bubble_alpha < 1.0:
+            raise ValueError(f"bubble_alpha: expected a solid fraction in (0, 1), got {bubble_alpha}")
         self.grid = grid
         self.rho_p = float(rho_p)
+        self.bubble_alpha = float(bubble_alpha)
         shape = tuple(grid.n)
         self.count = 0
         self.times: list[float] = []
@@ -153,6 +162,7 @@ class TimeAverage:
         self.s1 = np.zeros((*shape, 3))
         self.s2 = np.zeros(shape)
         self.q = np.zeros(shape)
+        self.voids = np.zeros(shape)  # snapshots in which the bin was void (α_p < bubble_alpha)
 
     def add(self, t: float, sums: BinSums) -> None:
         """Add the sums of the snapshot at time t (s)."""
@@ -162,6 +172,7 @@ class TimeAverage:
         self.s1 += sums.s1
         self.s2 += sums.s2
         self.q += sums.q
+        self.voids += sums.s0 < self.bubble_alpha * self.grid.bin_volume
 
     def result(self, agitation: str = "cell") -> dict[str, np.ndarray]:
         """Time averages over the snapshots added (each snapshot counts equally).
@@ -172,7 +183,8 @@ class TimeAverage:
           averaged over time weighted by the solid volume: Σ_t Σ_p V|u − U_b(t)|² / Σ_t Σ_p V.
           With agitation="window": u' about the time-averaged U_p of the bin (adds the bubble-scale,
           time-resolved fluctuations): Σ_t Σ_p V|u|²/Σ V − |U_p|².
-        * samples: Σ_t Σ_p w V / (ΔV count) = mean α_p (kept for masking sparse bins).
+        * bubble_frequency: the share of the snapshots in which the bin's α_p was below `bubble_alpha`
+          (seed 001 Fig 15's bubbles, counted: 0 in a bin that is never void, 1 in one always void).
         """
         if agitation not in ("cell", "window"):
             raise ValueError(f"agitation: expected 'cell' or 'window', got {agitation!r}")
@@ -191,4 +203,5 @@ class TimeAverage:
             "mass_flux": self.rho_p * self.s1 / (dv * self.count),
             "velocity": vel,
             "q2": q2,
+            "bubble_frequency": self.voids / self.count,
         }

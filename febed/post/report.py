@@ -3,12 +3,16 @@
 Files written (x/L, z/H, q_p²/U_f², flux/ρU_f, t/(d_p/U_f): seed 001 §4 scales):
 
     fields.npz                    every averaged array + grid + window (numpy)
-    fields.csv                    one row per bin: x, z, x/L, z/H, alpha_p, flux x/z (and / ρU_f), U_p, q2
+    fields.csv                    one row per bin: x, z, x/L, z/H, alpha_p, flux x/z (and / ρU_f), U_p, q2,
+                                  bubble frequency (share of the snapshots with α_p < bubble_alpha)
     profile_zH<h>.csv             horizontal profiles at z/H = h (default 0.092, seed 001 Figs 13, 18)
     timeseries.csv                t, t/(d_p/U_f), dp_bed, dp_bed/(W/A), bed_height, bed_height/H
     summary.csv                   key, value: window, snapshots, means of dp_bed and bed height, W/A, ...
                                   bed_flux_centre/walls/rhoUf: vertical solid flux averaged over the bed's
-                                  rows, central third and outer 15 % of the width (seed 001's mixing loops)
+                                  rows, central third and outer 15 % of the width (seed 001's mixing loops);
+                                  bubble_fraction: the share of the bins below 0.8 × the bed height that
+                                  are void (α_p < bubble_alpha, default 0.15) in a snapshot, averaged;
+                                  q2_bed/Uf2: the solid-volume-weighted agitation energy below the bed height
     fields.png, profile_zH<h>.png, timeseries.png, snapshots.png (instantaneous 1 - α_p, seed 001 Fig 15)
 """
 
@@ -22,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from febed.post.fields import AveragedFields, average_fields
+from febed.post.grid import BUBBLE_ALPHA
 from febed.post.rundata import list_snapshots, run_info
 from febed.post.series import SeriesSummary, read_series, summarize, weight_per_area
 
@@ -61,11 +66,12 @@ def _fields_csv(avg: AveragedFields, path: Path) -> Path:
                     float(avg.alpha_p[i, j]), float(fx[i, j]), float(fz[i, j]),
                     float(fx[i, j] / s["rhoU_f"]), float(fz[i, j] / s["rhoU_f"]),
                     float(ux[i, j]), float(uz[i, j]), float(avg.q2[i, j]), float(avg.q2[i, j] / s["U_f"] ** 2),
+                    float(avg.bubble_frequency[i, j]),
                 )
             )  # fmt: skip
     header = [
         "x", "z", "x/L", "z/H", "alpha_p", "mass_flux_x", "mass_flux_z", "mass_flux_x/rhoUf", "mass_flux_z/rhoUf",
-        "U_px", "U_pz", "q2", "q2/Uf2",
+        "U_px", "U_pz", "q2", "q2/Uf2", "bubble_frequency",
     ]  # fmt: skip
     return _write_csv(path, header, rows)
 
@@ -79,6 +85,7 @@ def post_run(
     heights: tuple[float, ...] = DEFAULT_HEIGHTS,
     figures: bool = True,
     out: str | Path | None = None,
+    bubble_alpha: float = BUBBLE_ALPHA,
 ) -> PostResult:
     """Post-process a run folder into `out` (default RUN_DIR/post): see the module docstring.
 
@@ -91,6 +98,7 @@ def post_run(
         heights: z/H of the horizontal profiles.
         figures: write the PNG figures.
         out: output folder.
+        bubble_alpha: a bin below this instantaneous α_p is bubble (bubble_frequency, bubble_fraction).
     """
     run_dir = Path(run_dir)
     info = run_info(run_dir)
@@ -109,12 +117,13 @@ def post_run(
     files: list[Path] = []
     avg = None
     if snaps:
-        avg = average_fields(run_dir, window, bins, kernel, agitation)
+        avg = average_fields(run_dir, window, bins, kernel, agitation, bubble_alpha=bubble_alpha)
         window = avg.window
         np.savez(
             out / "fields.npz",
             x=avg.grid.centres(0), z=avg.grid.centres(1), alpha_p=avg.alpha_p, mass_flux=avg.mass_flux,
-            velocity=avg.velocity, q2=avg.q2, times=np.asarray(avg.times), window=np.asarray(avg.window),
+            velocity=avg.velocity, q2=avg.q2, bubble_frequency=avg.bubble_frequency, bubble_alpha=avg.bubble_alpha,
+            times=np.asarray(avg.times), window=np.asarray(avg.window),
             kernel=avg.kernel, agitation=avg.agitation, axes=np.asarray(avg.grid.axes), depth=avg.grid.depth,
         )  # fmt: skip
         files += [out / "fields.npz", _fields_csv(avg, out / "fields.csv")]
@@ -142,6 +151,10 @@ def post_run(
         nan = math.nan
         c, w = avg.circulation(summary.bed_height_mean) if math.isfinite(summary.bed_height_mean) else (nan, nan)
         values["bed_flux_centre/rhoUf"], values["bed_flux_walls/rhoUf"] = c / s["rhoU_f"], w / s["rhoU_f"]
+        h_bed = summary.bed_height_mean
+        values["bubble_alpha"] = avg.bubble_alpha
+        values["bubble_fraction"] = avg.bubble_fraction(0.8 * h_bed) if math.isfinite(h_bed) else nan
+        values["q2_bed/Uf2"] = avg.bed_agitation(h_bed) / s["U_f"] ** 2 if math.isfinite(h_bed) else nan
         for h in heights:
             x, fz = avg.profile("mass_flux_z", h * info.height)
             _, a = avg.profile("alpha_p", h * info.height)

@@ -161,6 +161,41 @@ def test_time_average_and_agitation_definitions():
     assert np.allclose(window["q2"][:, :3], q2, rtol=1e-10)
 
 
+def test_bubble_frequency_fraction_and_bed_agitation_exact():
+    """A dense bed (α_p = 0.5 in rows 0-2) with one bin of row 1 emptied per snapshot, in turn across the width."""
+    pos, bins, sub = lattice()
+    d = (6.0 / math.pi * 0.5 * GRID.bin_volume / 48) ** (1 / 3)  # 48 particles per bin: α_p = 0.5
+    delta = 0.05
+    acc = TimeAverage(GRID, RHO_P)
+    for k in range(4):
+        keep = ~((bins[:, 0] == k) & (bins[:, 1] == 1))
+        vel = np.where((bins[:, 1] == 0)[:, None], fluctuations(sub, delta), 0.0)  # agitation in row 0 only
+        acc.add(0.1 * k, bin_sums(GRID, pos[keep], vel[keep], np.full(keep.sum(), d)))
+    r = acc.result()
+    assert np.allclose(r["alpha_p"][:, 0], 0.5, rtol=1e-13)
+    freq = r["bubble_frequency"]
+    assert np.array_equal(freq[:, 0], np.zeros(4)) and np.array_equal(freq[:, 2], np.zeros(4))
+    assert np.array_equal(freq[:, 1], np.full(4, 0.25))  # each bin of row 1 void in one snapshot of four
+    assert np.array_equal(freq[:, 3:], np.ones((4, 2)))  # above the bed: always void
+    from febed.post.fields import AveragedFields
+
+    avg = AveragedFields(None, GRID, (0.0, 0.3), acc.times, "ngp", "cell", r["alpha_p"], r["mass_flux"],
+                         r["velocity"], r["q2"], 0.0, bubble_frequency=freq)  # fmt: skip
+    # the bins below 0.8 x 0.15 m: rows 0 and 1 (centres 25 and 75 mm)
+    assert avg.bubble_fraction(0.8 * 0.15) == 0.125
+    assert math.isnan(avg.bubble_fraction(0.01))  # no bin centre below 10 mm
+    # q_p² = 3 δ² in row 0 (α 0.5), 0 in rows 1 (α 0.375) and 2 (α 0.5): the solid-volume-weighted mean
+    assert avg.bed_agitation(0.15) == pytest.approx(3 * delta**2 * 0.5 / (0.5 + 0.375 + 0.5), rel=1e-12)
+    # the threshold decides: half-emptied bins (α_p 0.25) are bubble at 0.3, not at the default 0.15
+    for alpha, expect in ((0.15, 0.0), (0.3, 1.0)):
+        a = TimeAverage(GRID, RHO_P, bubble_alpha=alpha)
+        half = sub[:, 2] < 2
+        a.add(0.0, bin_sums(GRID, pos[half], np.zeros((half.sum(), 3)), np.full(half.sum(), d)))
+        assert np.all(a.result()["bubble_frequency"][:, :3] == expect)
+    with pytest.raises(ValueError, match="bubble_alpha"):
+        TimeAverage(GRID, RHO_P, bubble_alpha=1.5)
+
+
 def test_run_folder_window_rank_order_and_incomplete_files(tmp_path):
     """From files: window selection, snapshot order of the ranks irrelevant (bitwise), missing/half files skipped."""
     pos, bins, sub = lattice()
@@ -248,6 +283,11 @@ def test_post_run_writes_tables_and_figures(tmp_path):
     c, w = res.fields.circulation(0.1, centre=0.1, wall=0.13)  # two rows; no bin centre within 0.05 of x/L = 0.5
     assert math.isnan(c) and w == pytest.approx(RHO_P * alpha_b * np.mean([bin_velocity(i, j)[2] for i in (0, 3)
                                                                            for j in range(2)]), rel=1e-10)  # fmt: skip
+    # this synthetic bed is dilute (α_p 0.0017): every bin is void at the default threshold 0.15
+    assert res.values["bubble_fraction"] == 1.0
+    sparse = post_run(run, window=(0.1, 0.3), bins=BINS, figures=False, out=tmp_path / "p2", bubble_alpha=1e-3)
+    assert sparse.values["bubble_fraction"] == 0.0  # rows 0-2 hold α_p 0.0017 > 1e-3 in every snapshot
+    assert abs(sparse.values["q2_bed/Uf2"]) < 1e-25  # one velocity per bin: no agitation (round-off)
     prof = np.loadtxt(run / "post" / "profile_zH0.092.csv", delimiter=",", skiprows=1)
     alpha = 48 * VP / GRID.bin_volume  # z/H = 0.092 lies in the first bin row (below its centre)
     expect = [RHO_P * alpha * bin_velocity(i, 0)[2] / (RHO_G * UF) for i in range(BINS[0])]
