@@ -61,8 +61,14 @@ comm.barrier()
 t2 = time.perf_counter()
 after = s.timers.as_dict()
 split = {k.removeprefix("wall_"): comm.allreduce(after[k] - before[k], op=MPI.MAX) for k in after}
-ex_split = {k: [comm.allreduce(v - ex_before.get(k, 0.0), op=op) for op in (MPI.MIN, MPI.MAX)]
-            for k, v in sorted(ex.timers.items())} if ex else {}
+ex_split = (
+    {
+        k: [comm.allreduce(v - ex_before.get(k, 0.0), op=op) for op in (MPI.MIN, MPI.MAX)]
+        for k, v in sorted(ex.timers.items())
+    }
+    if ex
+    else {}
+)
 exchange = comm.allreduce(sum(ex.timers.values()) - sum(ex_before.values()) if ex is not None else 0.0, op=MPI.MAX)
 counts = comm.gather(s.dem.particles.n_owned, root=0)
 if comm.rank == 0:
