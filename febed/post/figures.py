@@ -26,7 +26,8 @@ def _top(avg, threshold: float = 1e-3) -> float:
 
 
 def field_maps(avg, path: Path) -> Path:
-    """Maps of ⟨α_p⟩, vertical solid flux / ρU_f (+ in-plane flux arrows), q_p²/U_f² (seed 001 Figs 12, 14, 16, 17)."""
+    """Maps of ⟨α_p⟩, vertical solid flux / ρU_f (+ in-plane flux arrows), q_p²/U_f² (seed 001 Figs 12, 14, 16, 17)
+    and the bubble frequency (the share of the snapshots in which a bin was void: where bubbles pass, Fig 15)."""
     plt = _plt()
     s = avg.scales()
     L, H = s["L"], s["H"]
@@ -38,7 +39,10 @@ def field_maps(avg, path: Path) -> Path:
         (vz, r"$\overline{\langle\alpha_p\rho_p U_{p,z}\rangle}_{xz}/\rho U_f$", "RdBu_r", None),
         (avg.q2 / s["U_f"] ** 2, r"$q_p^2/U_f^2$", "magma", None),
     ]
-    fig, axes = plt.subplots(1, 3, figsize=(9, 1.4 + 2.3 * top * H / L), sharey=True)
+    if avg.bubble_frequency is not None:
+        title = f"bubble frequency\n(α_p < {avg.bubble_alpha:g})"
+        panels.append((avg.bubble_frequency, title, "Blues", (0.0, 1.0)))
+    fig, axes = plt.subplots(1, len(panels), figsize=(3 * len(panels), 1.4 + 2.3 * top * H / L), sharey=True)
     for ax, (f, title, cmap, lim) in zip(axes, panels, strict=True):
         if lim is None:
             m = float(np.nanmax(np.abs(f))) or 1.0
