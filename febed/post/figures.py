@@ -26,8 +26,10 @@ def _top(avg, threshold: float = 1e-3) -> float:
 
 
 def field_maps(avg, path: Path) -> Path:
-    """Maps of ⟨α_p⟩, vertical solid flux / ρU_f (+ in-plane flux arrows), q_p²/U_f² (seed 001 Figs 12, 14, 16, 17)
-    and the bubble frequency (the share of the snapshots in which a bin was void: where bubbles pass, Fig 15)."""
+    """Maps of ⟨α_p⟩, vertical solid flux / ρU_f (+ flux arrows), q_p²/U_f², bubble frequency (seed 001 Figs 12-17).
+
+    The bubble frequency is the share of the snapshots in which a bin was void: where bubbles pass (Fig 15).
+    """
     plt = _plt()
     s = avg.scales()
     L, H = s["L"], s["H"]
