@@ -441,6 +441,14 @@ BOUNDARY: dict[str, Param] = {
     ),
     "ramp_time": Param(0.0, "s", "inlet: ramp the velocity linearly from 0 over this time", float, lo=0.0),
     "slip": Param(False, "-", "wall: slip (true) or no-slip (false) for the gas", bool),
+    "slip_normals": Param(
+        [],
+        "-",
+        "wall with slip: only the tag's facets whose normal lies along these axes slip, the rest stay no-slip "
+        "(e.g. ['y']: a pseudo-2D bed's front and back walls); default all",
+        list,
+        item=str,
+    ),
     "pressure": Param(0.0, "Pa", "outlet: dynamic pressure", float),
     "particles": Param(True, "-", "wall: particles collide with these facets (outlet: particles leave)", bool),
 }

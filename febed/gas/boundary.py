@@ -8,7 +8,10 @@ Each named facet tag gets a `BoundarySpec`:
   tag's area plus the areas of `cross_section_tags` (seed 001's bottom-wall patch: U_f is defined over
   the whole cross-section, so the open part carries U_f A_total / A_open, DESIGN.md "Readings").
 * `wall` — no-slip (q = 0) or, with `slip`, zero normal velocity: at each node the directions of
-  ∫ φ_i n⊗n ds with a significant weight are removed (so corners and edges are handled).
+  ∫ φ_i n⊗n ds with a significant weight are removed (so corners and edges are handled). With
+  `slip_normals` (axes, e.g. ("y",)) only the tag's facets whose normal lies along those axes slip: a node
+  that touches any other facet of the tag stays no-slip (a pseudo-2D bed's front and back walls slip, its
+  side walls do not: `demos/pseudo2d/C1-slip-front-back.toml`).
 * `outlet` — pressure `pressure` [Pa] (Dirichlet for p, zero increment); the velocity is free, except that
   gas flowing back in is braked (backflow stabilisation, `VANSParameters.backflow`, see `febed.gas.vans`).
 * `symmetry` — zero normal velocity, like a slip wall.
@@ -29,6 +32,7 @@ import numpy as np
 from febed.gas.operators import normal_tensor_weights, tag_normal_weights
 
 BOUNDARY_TYPES = ("inlet", "wall", "outlet", "symmetry")
+AXES = ("x", "y", "z")
 
 
 @dataclass
@@ -41,6 +45,7 @@ class BoundarySpec:
     slip: bool = False
     pressure: float = 0.0
     cross_section_tags: tuple[str, ...] = ()
+    slip_normals: tuple[str, ...] = ()
 
     def validate(self, name: str) -> None:
         """Raise ValueError naming the tag and the bad field."""
@@ -48,6 +53,11 @@ class BoundarySpec:
             raise ValueError(f"boundary {name!r}: type {self.type!r} is not one of {', '.join(BOUNDARY_TYPES)}")
         if self.type == "inlet" and (self.velocity is None or not self.velocity >= 0.0):
             raise ValueError(f"boundary {name!r}: an inlet needs velocity >= 0 (superficial, m/s)")
+        bad = [a for a in self.slip_normals if a not in AXES]
+        if bad:
+            raise ValueError(f"boundary {name!r}: slip_normals {bad} are not axes; allowed: {', '.join(AXES)}")
+        if self.slip_normals and not (self.type == "wall" and self.slip):
+            raise ValueError(f"boundary {name!r}: slip_normals needs type = 'wall' with slip = true")
         if self.ramp_time < 0.0:
             raise ValueError(f"boundary {name!r}: ramp_time must be >= 0 s, got {self.ramp_time}")
 
@@ -85,6 +95,15 @@ class NodalBoundary:
         dofs = {n: _dofs(mesh_data, Q, n) for n in specs}
         empty = np.empty(0, np.int32)
         noslip = [dofs[n] for n, s in specs.items() if s.type == "wall" and not s.slip]
+        for n, s in specs.items():  # slip only on the facets normal to slip_normals: the other nodes stay no-slip
+            if s.type == "wall" and s.slip and s.slip_normals:
+                keep = [AXES.index(a) for a in s.slip_normals]
+                if max(keep) >= ops.gdim:
+                    raise ValueError(f"boundary {n!r}: slip_normals {list(s.slip_normals)} in a {ops.gdim}D mesh")
+                other = [d for d in range(ops.gdim) if d not in keep]
+                nn = normal_tensor_weights(mesh_data, Q, [n])[dofs[n]]
+                weight = nn[:, other, other].sum(axis=1)  # Σ ∫φ_i n_d² ds over the other axes d
+                noslip.append(dofs[n][weight > 1e-9 * np.trace(nn, axis1=1, axis2=2)])
         self.noslip = np.unique(np.concatenate(noslip)) if noslip else empty
         taken = self.noslip
         # inlets: nodes, inward normal, superficial speed factor A_total / A_open (discrete)

@@ -263,6 +263,7 @@ class VANSSolver:
                 slip=d.get("slip", False),
                 pressure=d.get("pressure", 0.0),
                 cross_section_tags=tuple(d.get("cross_section_tags", ()) or ()),
+                slip_normals=tuple(d.get("slip_normals", ()) or ()),
             )
         apply_petsc_options(g.petsc_options)
         params = VANSParameters(

@@ -34,6 +34,14 @@ def test_case_matches_table3(name):
     assert c.mesh.builtin == "pseudo2d" and c.particles.bed_file == f"pseudo2d-{round(mass * 1000)}g.npz"
 
 
+def test_c1_slip_front_back_is_c1_with_slipping_front_and_back_walls():
+    c, v = load_case(DEMO / "C1.toml"), load_case(DEMO / "C1-slip-front-back.toml")
+    assert v.boundary["walls"].slip and v.boundary["walls"].slip_normals == ["y"]
+    assert not c.boundary["walls"].slip and c.boundary["walls"].slip_normals == []
+    for sec in ("particles", "contact", "mesh", "gas", "coupling"):
+        assert getattr(v, sec).as_dict() == getattr(c, sec).as_dict(), sec
+
+
 def test_studies_load():
     sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13}
     for name, n in sizes.items():
