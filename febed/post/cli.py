@@ -38,12 +38,14 @@ def add_post_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--heights", type=float, nargs="+", default=[0.092], metavar="Z/H", help="profile heights z/H (0.092)"
     )
+    from febed.post.grid import BUBBLE_ALPHA
+
     p.add_argument(
         "--bubble-alpha",
         type=float,
-        default=0.15,
+        default=BUBBLE_ALPHA,
         metavar="A",
-        help="a bin whose instantaneous solid fraction is below A is bubble (bubble_frequency; default 0.15)",
+        help=f"a bin whose instantaneous solid fraction is below A is bubble (default {BUBBLE_ALPHA})",
     )
     p.add_argument("--no-figures", action="store_true", help="CSV tables only")
     p.add_argument("-o", "--output", help="output folder (default RUN_DIR/post)")
