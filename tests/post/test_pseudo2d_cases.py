@@ -43,7 +43,7 @@ def test_c1_slip_front_back_is_c1_with_slipping_front_and_back_walls():
 
 
 def test_studies_load():
-    sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13}
+    sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13, "walls": 5}
     for name, n in sizes.items():
         s = load_study(DEMO / f"study-{name}.toml")
         assert len(s.members) == n
