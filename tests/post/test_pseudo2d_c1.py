@@ -1,5 +1,8 @@
 """Seed 001 C1 (slow): a short run of the pseudo-2D bed circulates solid up the centre, down the walls.
 
+C1 as Table 3 gives it (every gas wall no-slip) and C1 with its front and back walls slipping
+(`C1-slip-front-back.toml`, session 8: the coarse mesh's no-slip front/back walls keep the bed from bubbling).
+
 `FEBED_C1_END` sets the simulated time (default 3 s; the last 2/3 are averaged). On a 2-core machine the
 75 g bed (57,296 particles) runs at 10-20 min per simulated second: this is a `make test-all` test.
 """
@@ -50,7 +53,8 @@ def test_c1_short_run_pressure_drop_carries_the_bed(c1):
 @pytest.mark.xfail(
     strict=True,
     reason="febed's C1 (coarse mesh) circulates the other way: over 1.5-4.65 s, bed-averaged vertical solid flux "
-    "-64 rho U_f in the centre, +46 at the walls (C2 turns seed 001's way); demos/pseudo2d/README.md",
+    "-64 rho U_f in the centre, +46 at the walls (C2, and C1 with slipping front/back walls, turn seed 001's way); "
+    "demos/pseudo2d/README.md",
 )
 def test_c1_short_run_circulation_up_the_centre_down_the_walls(c1):
     v = c1.values
