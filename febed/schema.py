@@ -34,7 +34,7 @@ class Param:
         help: one sentence for `febed params`.
         type: float, int, bool, str or list (a list of numbers, see `length`).
         lo, hi: inclusive bounds for numbers (list entries too); `lo_open` makes the lower bound strict.
-        choices: allowed values for strings: a tuple or a Registry.
+        choices: allowed values for strings (or the items of a list of strings): a tuple or a Registry.
         length: required length of a list (None: any length >= 1).
     """
 
@@ -52,8 +52,8 @@ class Param:
     def allowed(self) -> str:
         """Human-readable description of the allowed values."""
         if self.choices is not None:
-            names = self.choice_names()
-            return "one of " + ", ".join(repr(c) for c in names)
+            names = ", ".join(repr(c) for c in self.choice_names())
+            return f"a list of strings from {names}" if self.type is list else f"one of {names}"
         what = _TYPE_NAMES[self.type]
         if self.type is list:
             noun = "numbers" if self.item is float else "strings"
@@ -105,7 +105,9 @@ class Param:
             if self.length is not None and len(value) != self.length:
                 return bad
             if self.item is str:
-                return (value, None) if all(isinstance(x, str) for x in value) else bad
+                ok = all(isinstance(x, str) for x in value)
+                ok = ok and (self.choices is None or all(x in self.choice_names() for x in value))
+                return (value, None) if ok else bad
             if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
                 return bad
             value = [float(x) for x in value]
@@ -447,6 +449,7 @@ BOUNDARY: dict[str, Param] = {
         "wall with slip: only the tag's facets whose normal lies along these axes slip, the rest stay no-slip "
         "(e.g. ['y']: a pseudo-2D bed's front and back walls); default all",
         list,
+        choices=("x", "y", "z"),
         item=str,
     ),
     "pressure": Param(0.0, "Pa", "outlet: dynamic pressure", float),

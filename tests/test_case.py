@@ -146,3 +146,13 @@ def test_mode_needs_boundaries(tmp_path):
     text = '[run]\nmode = "gas"\n[mesh]\nbuiltin = "wang2d"\n'
     assert "needs gas boundary conditions" in problems(tmp_path, text)[0]
     assert load_case(write(tmp_path, text.replace('"gas"', '"dem"'))).run.mode == "dem"
+
+
+def test_slip_normals_axes_and_their_wall(tmp_path):
+    """slip_normals: axes from x, y, z (schema choices), and only on a slipping wall (cross-check)."""
+    got = problems(tmp_path, BASE, ['gas.boundary.walls.slip_normals=["y", "w"]'])
+    assert got == ["[gas.boundary.walls] slip_normals = ['y', 'w']: expected a list of strings from 'x', 'y', 'z'"]
+    got = problems(tmp_path, BASE, ['gas.boundary.walls.slip_normals=["y"]'])
+    assert got == ["[gas.boundary.walls] slip_normals needs type = 'wall' and slip = true"]
+    case = load_case(write(tmp_path, BASE), ["gas.boundary.walls.slip=true", 'gas.boundary.walls.slip_normals=["x"]'])
+    assert case.boundary["walls"].slip_normals == ["x"]

@@ -83,7 +83,7 @@ class AveragedFields:
     velocity: np.ndarray
     q2: np.ndarray
     solid_volume: float
-    bubble_frequency: np.ndarray | None = None
+    bubble_frequency: np.ndarray
     bubble_alpha: float = BUBBLE_ALPHA
     extra: dict = field(default_factory=dict)
 

@@ -40,10 +40,8 @@ def field_maps(avg, path: Path) -> Path:
         (avg.alpha_p, r"$\overline{\langle\alpha_p\rangle}_{xz}$", "viridis", (0.0, max(0.6, avg.alpha_p.max()))),
         (vz, r"$\overline{\langle\alpha_p\rho_p U_{p,z}\rangle}_{xz}/\rho U_f$", "RdBu_r", None),
         (avg.q2 / s["U_f"] ** 2, r"$q_p^2/U_f^2$", "magma", None),
+        (avg.bubble_frequency, f"bubble frequency\n(α_p < {avg.bubble_alpha:g})", "Blues", (0.0, 1.0)),
     ]
-    if avg.bubble_frequency is not None:
-        title = f"bubble frequency\n(α_p < {avg.bubble_alpha:g})"
-        panels.append((avg.bubble_frequency, title, "Blues", (0.0, 1.0)))
     fig, axes = plt.subplots(1, len(panels), figsize=(3 * len(panels), 1.4 + 2.3 * top * H / L), sharey=True)
     for ax, (f, title, cmap, lim) in zip(axes, panels, strict=True):
         if lim is None:
