@@ -195,6 +195,7 @@ def _restart_target(case, restart: str) -> tuple[Path, Path]:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `febed` console script; returns the exit status."""
+    from febed.dem.solver import DEMFailure
     from febed.io.checkpoint import CheckpointError
     from febed.io.rundir import OutputError
     from febed.run import Interrupted
@@ -217,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
         _say(f"febed: error: {e}", err=True)
     except RunFailure as e:
         _say(f"febed: the run failed: {e}", err=True)
+        return 3
+    except DEMFailure as e:  # a pure-DEM run (a coupled run turns it into a RunFailure)
+        _say(f"febed: the run failed: the particles blew up: {e}", err=True)
         return 3
     except Interrupted as e:
         _say(f"febed: {e}", err=True)

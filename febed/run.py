@@ -44,6 +44,7 @@ from febed.coupling.exchange import solid_volume
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.weights import compute_weights
+from febed.dem.solver import DEMFailure
 from febed.io.checkpoint import FOLDER, CheckpointError, write_checkpoint
 from febed.io.probes import ProbeFile
 from febed.io.progress import Progress, clock
@@ -366,6 +367,10 @@ class CoupledRun:
             except RunFailure as e:
                 self.fail(e)
                 raise
+            except DEMFailure as e:  # agreed over the ranks, like RunFailure
+                err = RunFailure(f"the particles blew up: {e}")
+                self.fail(err)
+                raise err from None
             except (ValueError, IndexError, ZeroDivisionError, FloatingPointError, MemoryError) as e:
                 # a blow-up surfacing inside a kernel or NumPy call (e.g. a negative array size): a failure,
                 # not an input error; on several ranks only this rank knows, so no collective checkpoint

@@ -206,7 +206,7 @@ class CoupledSolver:
         P = self.dem.particles
         if self.md.comm.size > 1:  # every rank steps the same chunks (the DEM exchanges ghosts per step)
             tau = self.md.comm.allreduce(tau, op=MPI.MIN)
-        ratio = dt / (0.1 * tau)
+        ratio = dt / (0.1 * tau) if tau > 0 else math.inf  # tau 0 or NaN: a failing run (the check names it)
         chunks = max(1, math.ceil(ratio)) if ratio < n_sub else n_sub  # NaN (a failing run): every sub-step
         h = dt / n_sub
         done = 0

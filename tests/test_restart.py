@@ -174,21 +174,39 @@ def test_failures_stop_with_message_checkpoint_and_exit_3(tmp_path, capsys, sett
     assert latest_valid(out / "checkpoints") is not None  # the last good state
 
 
-def test_nan_is_detected_naming_the_particle(tmp_path):
+@pytest.mark.mpi
+@pytest.mark.parametrize(
+    "what, value, message",
+    [
+        ("vel", np.nan, r"particle \d+ at \[.*nan.*\] m has a non-finite position during the DEM steps from t = 0.002"),
+        ("vel", 1e12, r"particle 100 at .* moved .* from t = 0.002 s, more than 1000 times the size"),
+        ("vel", 1e200, r"particle \d+ at .* moved beyond 1e154 m .* more than 1000 times the size"),  # overflow
+    ],
+    ids=["nan", "huge-velocity", "overflow"],
+)
+def test_blow_up_on_one_rank_stops_every_rank_with_the_last_good_state(mpi_tmp_path, what, value, message):
+    """On 2 ranks only the rank holding particle 100 sees it go wrong; every rank stops with the same message
+    (agreed at the DEM's next list rebuild) and the last good state is written as a checkpoint."""
+    from mpi4py import MPI
+
     from febed.case import load_case
     from febed.io.rundir import get_logger
     from febed.run import CoupledRun
     from febed.solver import RunFailure
 
-    case = load_case(CASE, [f"output.directory={tmp_path}", *FAST[1::2]])
-    run = CoupledRun(case, tmp_path, get_logger(None))
+    comm = MPI.COMM_WORLD
+    out = mpi_tmp_path / "run"
+    case = load_case(CASE, [f"output.directory={out}", *FAST[1::2]])
+    run = CoupledRun(case, out, get_logger(None, comm), comm)
     run.advance_to(0.002)
     P = run.solver.dem.particles
-    P.vel[7, 1] = np.nan
-    with pytest.raises(RunFailure, match=r"particle \d+ has a non-finite position/velocity at t = 0.002 s"):
+    row = np.flatnonzero(P.gid[: P.n_owned] == 100)
+    getattr(P, what)[row, 1] = value
+    with pytest.raises(RunFailure, match="the particles blew up: " + message):
         run.advance_to(0.004)
-    assert json.loads((tmp_path / "status.json").read_text())["state"] == "failed"
-    _, meta = read_checkpoint(latest_valid(tmp_path / "checkpoints"))
+    comm.barrier()
+    assert json.loads((out / "status.json").read_text())["state"] == "failed"
+    _, meta = read_checkpoint(latest_valid(out / "checkpoints"))
     assert meta["time"] <= 0.002 + 1e-12  # the last state that passed the checks
     run.close()
 

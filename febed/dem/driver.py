@@ -38,7 +38,7 @@ from febed.dem.insertion import (
     settle,
 )
 from febed.dem.particles import Particles
-from febed.dem.solver import DEM
+from febed.dem.solver import DEM, DEMFailure
 from febed.dem.walls import Walls, touching
 
 
@@ -245,7 +245,12 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD) -> DEM:
         target = min(end, next_out)
         n = max(1, int(round((target - dem.time) / dt)))
         chunk = min(n, 2000)
-        dem.advance(chunk, dt)
+        try:
+            dem.advance(chunk, dt)
+        except DEMFailure as e:  # raised on every rank
+            write_status(outdir, "failed", dem.time, end, dem.steps, message=str(e), comm=comm)
+            log.error(f"run failed: the particles blew up: {e}")
+            raise
         x = dem.particles.pos[: dem.particles.n_owned]
         gone = np.any((x < lo) | (x > hi), axis=1)
         if gone.any():

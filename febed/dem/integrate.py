@@ -72,7 +72,7 @@ def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass,
                 w = 0.0
             omega[i, a] = w
             wp[i, a] = w + h * alpha
-        if d2 > hs2:
+        if not d2 <= hs2:  # NaN too: the rebuild reports it (`DEM._blow_up`)
             far = True
     return far
 
@@ -182,7 +182,7 @@ def _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, r
 
 @njit(cache=True, error_model="numpy")
 def _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0, pos_ref):
-    """Full step of seed 001 eq 41 from the saved state; returns max |x - x_ref| + dt |v| (m)."""
+    """Full step of seed 001 eq 41 from the saved state; returns max |x - x_ref| + dt |v| (m; inf if NaN)."""
     worst = 0.0
     for i in range(n_owned):
         im = dt / mass[i]
@@ -203,7 +203,9 @@ def _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, 
             d = x - pos_ref[i, a]
             d2 += d * d
             v2 += v * v
-        worst = max(worst, math.sqrt(d2) + dt * math.sqrt(v2))
+        reach = math.sqrt(d2) + dt * math.sqrt(v2)
+        if not reach <= worst:
+            worst = reach if reach == reach else np.inf  # NaN: rebuild, and the rebuild reports it
     return worst
 
 

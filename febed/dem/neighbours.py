@@ -23,6 +23,34 @@ MAX_CELLS_PER_PARTICLE = 8
 
 
 @njit(cache=True)
+def farthest_move(pos, pos_ref, n):
+    """(row, distance, spread) over rows 0..n-1: the farthest move since the last list build, and the spread.
+
+    The row farthest from its `pos_ref` row (the positions at the last build) and how far (m; inf at once if
+    non-finite; row -1 if n = 0), and the diagonal of the bounding box of pos_ref[:n] (m).
+    """
+    best = -1.0
+    row = -1
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(n):
+        d2 = 0.0
+        for a in range(3):
+            d = pos[i, a] - pos_ref[i, a]
+            d2 += d * d
+            lo[a] = min(lo[a], pos_ref[i, a])
+            hi[a] = max(hi[a], pos_ref[i, a])
+        if d2 != d2 or d2 == np.inf:
+            return i, np.inf, 0.0
+        if d2 > best:
+            best = d2
+            row = i
+    if row < 0:
+        return row, 0.0, 0.0
+    return row, np.sqrt(best), np.sqrt(((hi - lo) ** 2).sum())
+
+
+@njit(cache=True)
 def grid_of(pos, n, cutoff):
     """Lower corner, cell size and cell counts (3,) of a linked-cell grid over pos[:n] with cells >= cutoff."""
     lo = np.empty(3)

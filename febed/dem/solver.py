@@ -27,12 +27,22 @@ from febed.dem.neighbours import (
     PairList,
     carry_wall_history,
     cell_index,
+    farthest_move,
     grid_of,
     restore_wall_history,
     wall_keys,
 )
 from febed.dem.particles import Particles
 from febed.dem.walls import Walls, build_wall_pairs, wall_overlap_squares
+
+BLOW_UP_JUMP = 1000.0  # a jump in one step beyond this many times the cloud's size is a blow-up (`DEM._blow_up`)
+
+
+class DEMFailure(RuntimeError):
+    """The particles blew up: a position is no longer finite, or a particle jumped absurdly far in one step.
+
+    Found when the pair list is rebuilt (`DEM._blow_up`), agreed over the ranks: raised on every rank.
+    """
 
 
 @dataclass
@@ -233,6 +243,9 @@ class DEM:
         if self.exchange is not None:
             self._rebuild_parallel()
             return
+        problem = self._blow_up()
+        if problem:
+            raise DEMFailure(problem)
         P = self.particles
         n = P.n
         p = self.params
@@ -274,6 +287,10 @@ class DEM:
         P = self.particles
         p = self.params
         ex = self.exchange
+        problem = self._blow_up()
+        if ex.any(problem is not None):
+            found = [m for m in ex.comm.allgather(problem) if m]
+            raise DEMFailure(found[0] + (f" (and on {len(found) - 1} other rank(s))" if len(found) > 1 else ""))
         self.save_history()
         saved, wsaved = self._saved if self._saved is not None else (None, None)
         self._saved = None
@@ -300,6 +317,36 @@ class DEM:
         self.pos_ref = P.pos.copy()
         self._dirty = False
         self._lists_valid = True
+
+    def _blow_up(self) -> str | None:
+        """What went wrong if an owned particle's position is not finite or it jumped absurdly far (else None).
+
+        Called at a rebuild, before the rows change; the jump is measured since the last build. A rebuild not
+        asked for from outside (`touch`) comes when a particle moved more than half the skin since the last
+        build, and it was within half the skin one step earlier. "Absurdly far" is BLOW_UP_JUMP times the larger
+        of the largest diameter and the spread of the particles at that build: a speed no drag or contact force
+        produces (a lone particle may cross several diameters per step in free flight), which would only make
+        the linked-cell grid of the next pair search explode. Smaller excesses show as overlaps or escaped
+        particles (`CoupledSolver.check`).
+        """
+        P = self.particles
+        n = P.n_owned
+        if self._dirty or not self._lists_valid or n == 0 or self.pos_ref.shape[0] < n:
+            return None
+        row, dist, spread = farthest_move(P.pos, self.pos_ref, n)
+        scale = max(float(P.diameter[:n].max()), spread)
+        if dist <= 0.5 * self.pairs.skin + BLOW_UP_JUMP * scale:
+            return None
+        where = f"particle {int(P.gid[row])} at {np.array2string(P.pos[row], precision=4)} m"
+        when = f"during the DEM steps from t = {self.time:.6g} s"
+        if not np.all(np.isfinite(P.pos[row])):
+            return f"{where} has a non-finite position {when}"
+        return (
+            f"{where} moved {f'{dist:.3g} m' if np.isfinite(dist) else 'beyond 1e154 m'} since the last pair-list "
+            f"build {when}, more than {BLOW_UP_JUMP:g} times the size of the particle cloud ({scale:.3g} m) in one "
+            f"step (velocity {np.array2string(P.vel[row], precision=3)} m/s): a force far too large for the DEM "
+            "step (check contact.stiffness and contact.dt_factor) or a gas field that blew up"
+        )
 
     def save_history(self) -> None:
         """Key the contact history by gid pairs now; call before changing particle rows from outside."""
