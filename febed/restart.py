@@ -67,11 +67,15 @@ def _flatten(d: dict, prefix: str = "") -> dict[str, object]:
 
 
 def _is_default(key: str, value) -> bool:
-    """Whether `value` is the schema default of the top-level case key `section.name`."""
-    from febed.schema import SCHEMA
+    """Whether `value` is the schema default of the case key `section.name` or `gas.boundary.<tag>.name`."""
+    from febed.schema import BOUNDARY, SCHEMA
 
-    section, _, name = key.partition(".")
-    param = SCHEMA.get(section, {}).get(name)
+    parts = key.split(".")
+    if len(parts) == 4 and parts[:2] == ["gas", "boundary"]:
+        param = BOUNDARY.get(parts[3])
+    else:
+        section, _, name = key.partition(".")
+        param = SCHEMA.get(section, {}).get(name)
     return param is not None and value == param.default
 
 

@@ -259,3 +259,9 @@ def test_keys_added_since_the_checkpoint_at_their_default_are_not_changes():
     assert refused == ["gas.density: 1.2 -> 1.3"]
     accepted, _ = case_changes(old, new.replace("backflow = 1.0", "backflow = 0.5"))
     assert "gas.backflow: '(unset)' -> 0.5" in accepted
+    # the same for the keys of a boundary table (slip_normals arrived after runs were checkpointed)
+    old_b = '[gas.boundary.walls]\ntype = "wall"\n'
+    accepted, refused = case_changes(old_b, old_b + "slip_normals = []\n")
+    assert accepted == refused == []
+    _, refused = case_changes(old_b, old_b + 'slip_normals = ["y"]\n')
+    assert refused == ["gas.boundary.walls.slip_normals: '(unset)' -> ['y']"]
