@@ -38,6 +38,8 @@ RUNNERS = {
     "one-way": "febed.coarse.oneway",
 }
 
+RESTARTABLE = ("cfd-dem", "dem")  # modes whose runs write checkpoints and continue from them
+
 
 class UserError(Exception):
     """An input problem reported as a message, not a traceback."""
@@ -156,8 +158,10 @@ def cmd_run(args) -> int:
         return 0
     if args.overwrite:
         raise UserError("--restart continues the run in the output folder: it cannot be combined with --overwrite")
-    if case.run.mode != "cfd-dem":
-        raise UserError(f"--restart is available for [run] mode = 'cfd-dem' only, not {case.run.mode!r}")
+    if case.run.mode not in RESTARTABLE:
+        raise UserError(
+            f"--restart is available for [run] mode = {' or '.join(map(repr, RESTARTABLE))}, not {case.run.mode!r}"
+        )
     outdir, checkpoint = _restart_target(case, args.restart)
     log = get_logger(outdir, verbose=args.verbose)
     log.info(f"febed: case {case.name} ({case.path}), restart, {MPI.COMM_WORLD.size} rank(s)")

@@ -102,16 +102,12 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
     n = gas.n_owned
     arrays = {f"gas/{k}": v for k, v in gas.get_state().items()}
     arrays["gas/x"] = gas.x[:n].copy()
-    dem = s.dem.get_state()
-    if "saved_keys" not in dem and int(dem.get("lists_valid", 0)):  # one rank: the lists hold the history;
-        (k, v), (wk, wv) = s.dem._history_keys()  # keyed by gids too, for a restart on other rank counts
-        dem.update(keyed_keys=k, keyed_vals=v, keyed_wkeys=wk, keyed_wvals=wv)
-    for k, v in dem.items():
-        arrays[f"dem/{k}"] = np.array(v, copy=True)
+    arrays.update(dem_arrays(s.dem))
     meta = {
         "time": s.t,
         "step": s.steps,
         "ranks": run.comm.size,
+        "mode": run.case.run.mode,
         "solver": {
             "left_outlet": run.comm.allreduce(s.left_outlet),
             "n_sub": s.n_sub,
@@ -123,6 +119,15 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
         "run": run.schedule(),
     }
     return arrays, meta
+
+
+def dem_arrays(dem) -> dict[str, np.ndarray]:
+    """This rank's DEM state as checkpoint arrays `dem/<key>` (copies), the contact history keyed by gids too."""
+    state = dem.get_state()
+    if "saved_keys" not in state and int(state.get("lists_valid", 0)):  # one rank: the lists hold the history;
+        (k, v), (wk, wv) = dem._history_keys()  # keyed by gids too, for a restart on other rank counts
+        state.update(keyed_keys=k, keyed_vals=v, keyed_wkeys=wk, keyed_wvals=wv)
+    return {f"dem/{k}": np.array(v, copy=True) for k, v in state.items()}
 
 
 def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> dict[str, np.ndarray]:
@@ -185,16 +190,24 @@ def reload_particles(run, arrays: dict[str, np.ndarray], meta: dict) -> None:
     run that wrote it go on from the same particle layout.
     """
     s = run.solver
-    dem = {k[4:]: v for k, v in arrays.items() if k.startswith("dem/")}
-    same_layout = meta["ranks"] == run.comm.size == 1
-    if not same_layout:
-        dem = _portable(dem)
-    s.dem.set_state(dem)
-    if not same_layout:  # cell indices are rank-local: search the restored particles afresh
-        s.dem.particles.cell[: s.dem.particles.n_owned] = -1
-    if s.dem.exchange is not None:  # every rank holds every particle: keep this rank's share
-        s.dem.exchange.distribute(s.dem.particles)
+    load_dem(s.dem, arrays, meta, run.comm.size)
     s.reset_coupling()  # locate the particles and recompute α_p as at the end of the last step
+
+
+def load_dem(dem, arrays: dict[str, np.ndarray], meta: dict, ranks: int) -> None:
+    """Put a checkpoint's `dem/` arrays into `dem` (every rank holds the whole checkpoint; collective).
+
+    A one-rank checkpoint read by one process continues bit for bit; otherwise see `reload_particles`.
+    """
+    state = {k[4:]: v for k, v in arrays.items() if k.startswith("dem/")}
+    same_layout = meta["ranks"] == ranks == 1
+    if not same_layout:
+        state = _portable(state)
+    dem.set_state(state)
+    if not same_layout:  # cell indices are rank-local: search the restored particles afresh
+        dem.particles.cell[: dem.particles.n_owned] = -1
+    if dem.exchange is not None:  # every rank holds every particle: keep this rank's share
+        dem.exchange.distribute(dem.particles)
 
 
 def _portable(dem: dict) -> dict:
@@ -212,6 +225,12 @@ def _portable(dem: dict) -> dict:
 
 def check_restartable(meta: dict, case) -> None:
     """Raise CheckpointError if the checkpoint cannot continue this case (e.g. it is already past its end)."""
+    mode = meta.get("mode", "cfd-dem")  # coupled checkpoints before session 9 carry no mode
+    if mode != case.run.mode:
+        raise CheckpointError(
+            f"the checkpoint is of a [run] mode = {mode!r} run, the case is {case.run.mode!r}: a run continues "
+            "in its own mode"
+        )
     if meta["time"] >= case.run.end_time * (1 - 1e-12):
         raise CheckpointError(
             f"the checkpoint is at t = {meta['time']:.6g} s, not before run.end_time = {case.run.end_time:g} s: "

@@ -14,6 +14,11 @@ With MPI (`mpirun -n N febed run`), every rank loads or inserts the same bed, th
 centres lie in its own mesh cells (`febed.parallel.ParticleExchange`); particles migrate and ghosts cross the
 partition inside `DEM.advance`. Output gathers every particle once; the log gives the particle load
 imbalance (max/mean particles per rank) at each output.
+
+Like a coupled run, a pure-DEM run (`DEMRun`) writes checkpoints (every `[output] checkpoint_interval`
+simulated or `checkpoint_wall_interval` wall seconds, on Ctrl-C/SIGTERM, at the end, and the last good
+state when the particles blow up), continues from one with `febed run CASE --restart` on any number of
+ranks, shows a progress line and keeps `status.json` up to date.
 """
 
 from __future__ import annotations
@@ -217,61 +222,232 @@ def build_dem(case, md, log, exchange=None) -> DEM:
     return dem
 
 
-def run(case, outdir, log, comm=MPI.COMM_WORLD) -> DEM:
-    """Run a pure-DEM case to `run.end_time`, writing particle output to `outdir`; returns the DEM."""
-    from febed.io.particles import ParticleWriter
-    from febed.io.rundir import write_status
-    from febed.meshing import load_case_mesh
+class DEMRun:
+    """A pure-DEM run with its output: `advance_to(t)` steps the DEM, writing particles and checkpoints.
 
-    md = load_case_mesh(case, comm)
-    exchange = particle_exchange(md, comm)
-    dem = build_dem(case, md, log, exchange)
-    lo = np.minimum.reduce(comm.allgather(md.mesh.geometry.x.min(axis=0))) - 1e-9
-    hi = np.maximum.reduce(comm.allgather(md.mesh.geometry.x.max(axis=0))) + 1e-9
-    writer = ParticleWriter(Path(outdir) / "particles", comm=comm)
-    dt = dem.dt
+    Checkpoints (`checkpoints/checkpoint_<step>.npz`, the same files as a coupled run's: the DEM state by
+    global id, `febed.restart.dem_arrays`) are written every `[output] checkpoint_interval` simulated or
+    `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM and at the end. The state at each particle
+    output is kept in memory: a blow-up (`DEMFailure`) writes it as the last good checkpoint.
+    """
+
+    def __init__(self, case, outdir: Path, log, comm=MPI.COMM_WORLD, restart=None):
+        """Build the mesh, walls and bed; `restart`: (path, arrays, meta) of a checkpoint to continue."""
+        from febed import restart as rs
+        from febed.io.particles import ParticleWriter
+        from febed.io.progress import Progress
+        from febed.meshing import load_case_mesh
+
+        self.case, self.outdir, self.log, self.comm = case, Path(outdir), log, comm
+        md = load_case_mesh(case, comm)
+        exchange = particle_exchange(md, comm)
+        self.restarted_from = None
+        files = []
+        self.left = 0  # particles that left the domain, on this rank
+        o = case.output
+        if restart is None:
+            self.dem = build_dem(case, md, log, exchange)
+            self.next_out, self.next_ckpt = o.particle_interval, o.checkpoint_interval
+        else:
+            path, arrays, meta = restart
+            walls = walls_from_mesh(case, md)
+            self.dem = dem_from_case(case, walls, md.gdim, Particles())
+            if exchange is not None:
+                self.dem.attach_exchange(exchange)
+            rs.load_dem(self.dem, arrays, meta, comm.size)
+            sched = meta["run"]
+            self.next_out = float(sched["next_out"])
+            self.next_ckpt = self.dem.time + o.checkpoint_interval
+            files = sched["particle_files"]
+            self.left = int(sched["left"]) if comm.rank == 0 else 0  # the total, counted once
+            self.restarted_from = path
+        self.lo = np.minimum.reduce(comm.allgather(md.mesh.geometry.x.min(axis=0))) - 1e-9
+        self.hi = np.maximum.reduce(comm.allgather(md.mesh.geometry.x.max(axis=0))) + 1e-9
+        self.writer = ParticleWriter(self.outdir / "particles", comm=comm, entries=files)
+        self.display = Progress(log, comm.rank)
+        self.good = None  # (arrays, meta) of the last particle output
+        self._signal = 0
+        self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
+        self._t0 = self.dem.time
+
+    # ------------------------------------------------------------------------------------ state
+    def capture(self) -> tuple[dict, dict]:
+        """This rank's state (copies) and the JSON-able meta record of a checkpoint."""
+        from febed import restart as rs
+
+        meta = {
+            "time": self.dem.time,
+            "step": self.dem.steps,
+            "ranks": self.comm.size,
+            "mode": "dem",
+            "run": {
+                "next_out": self.next_out,
+                "particle_files": [list(e) for e in self.writer.entries],
+                "left": self.comm.allreduce(self.left),
+            },
+        }
+        return rs.dem_arrays(self.dem), meta
+
+    def checkpoint(self, state=None) -> Path:
+        """Write a checkpoint of the current state, or of `state` from `capture` (collective)."""
+        from febed import restart as rs
+        from febed.io.checkpoint import FOLDER, write_checkpoint
+
+        arrays, meta = state if state is not None else self.capture()
+        meta = {**meta, "case": self.case.to_toml()}
+        path = write_checkpoint(
+            self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta, self.case.output.keep_checkpoints,
+            self.comm,
+        )  # fmt: skip
+        self._last_checkpoint = time.perf_counter()
+        self.next_ckpt = self.dem.time + self.case.output.checkpoint_interval
+        self.log.info(f"checkpoint at t = {meta['time']:.6g} s (DEM step {meta['step']}): {path}")
+        return path
+
+    def status(self, state: str, message: str = "") -> None:
+        """Write `status.json` (running / finished / failed / interrupted) at the DEM's time."""
+        from febed.io.rundir import write_status
+
+        dem = self.dem
+        write_status(self.outdir, state, dem.time, self.case.run.end_time, dem.steps, message, self.comm)
+
+    # ------------------------------------------------------------------------------------- loop
+    def output(self) -> None:
+        """Write the particles and keep the state as the last good one."""
+        self.writer.write(self.dem.time, self.dem.particles)
+        _log_balance(self.dem, self.log)
+        self.good = self.capture()
+
+    def advance_to(self, end: float) -> None:
+        """Step to `end` (s), writing particles, checkpoints and progress (collective).
+
+        Raises DEMFailure (after writing the last good state) or `febed.run.Interrupted` (after a checkpoint).
+        """
+        from febed.run import Interrupted, agree
+
+        dem = self.dem
+        dt = dem.dt
+        o = self.case.output
+        if self.good is None:
+            if self.restarted_from is None:
+                self.output()
+            else:
+                self.good = self.capture()
+        self.status("running")
+        while dem.time < end - 0.5 * dt:
+            target = min(end, self.next_out, self.next_ckpt)
+            n = max(1, int(round((target - dem.time) / dt)))
+            try:
+                dem.advance(min(n, CHUNK), dt)
+            except DEMFailure as e:  # raised on every rank
+                self.fail(f"the particles blew up: {e}")
+                raise
+            x = dem.particles.pos[: dem.particles.n_owned]
+            gone = np.any((x < self.lo) | (x > self.hi), axis=1)
+            if gone.any():
+                self.left += int(gone.sum())
+                dem.remove_particles(gone)
+            if dem.time >= self.next_out - 0.5 * dt:
+                self.next_out += o.particle_interval
+                self.output()
+            now = time.perf_counter()
+            sig, wall_due, show = agree(
+                self.comm, self._signal, now - self._last_checkpoint >= o.checkpoint_wall_interval,
+                now - self._last_progress >= o.progress_interval,
+            )  # fmt: skip
+            if sig or wall_due or dem.time >= self.next_ckpt - 0.5 * dt:
+                self.checkpoint()
+            if sig:
+                import signal
+
+                name = signal.Signals(sig).name
+                self.display.end()
+                self.status("interrupted", f"stopped by {name}")
+                raise Interrupted(
+                    sig, f"stopped by {name} at t = {dem.time:.6g} s after a checkpoint; continue with --restart"
+                )
+            if show:
+                self.progress(end)
+        self.progress(end)
+        self.display.end()
+
+    def progress(self, end: float) -> None:
+        """The progress line: simulated time, steps, particles, particles left, wall time rate, ETA (collective)."""
+        from febed.io.progress import clock
+
+        now = time.perf_counter()
+        self._last_progress = now
+        dem = self.dem
+        done = dem.time - self._t0
+        rate = (now - self._wall0) / done if done > 0 else math.nan
+        self.display.show(
+            f"t = {dem.time:.5f} / {end:g} s  step {dem.steps}  {dem.count()} particles  "
+            f"{self.comm.allreduce(self.left)} left  {rate / 60:.2f} min wall per simulated s  "
+            f"ETA {clock(rate * (end - dem.time))}"
+        )
+
+    def fail(self, message: str) -> None:
+        """Record a failure: write the last good state as a checkpoint and the status (collective)."""
+        self.display.end()
+        where = ""
+        if self.good is not None:
+            path = self.checkpoint(self.good)
+            where = f"; last good state (t = {self.good[1]['time']:.6g} s) in {path}"
+        self.status("failed", f"{message}{where}")
+        self.log.error(f"run failed: {message}{where}")
+
+    def catch_signals(self):
+        """Handle SIGINT/SIGTERM by stopping after the current chunk of steps; returns a function restoring them."""
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+
+        def handler(signum, frame):
+            if self._signal:  # a second Ctrl-C: stop now
+                raise KeyboardInterrupt
+            self._signal = signum
+            self.log.warning(f"{signal.Signals(signum).name} received: stopping after these DEM steps")
+
+        old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+        return lambda: [signal.signal(k, v) for k, v in old.items()]
+
+
+CHUNK = 500  # DEM steps per `advance` call between output, signal and progress checks
+
+
+def run(case, outdir, log, comm=MPI.COMM_WORLD, restart=None) -> DEM:
+    """Run a pure-DEM case to `run.end_time` (called by `febed run`); returns the DEM.
+
+    `restart`: a checkpoint file or run folder to continue from (its newest valid checkpoint).
+    """
+    from febed import restart as rs
+    from febed.io.checkpoint import load_checkpoint
+
+    ckpt = None
+    if restart is not None:
+        ckpt = load_checkpoint(Path(restart), comm)
+        rs.check_restartable(ckpt[2], case)
+    r = DEMRun(case, outdir, log, comm, restart=ckpt)
+    dem = r.dem
+    start = f"restarted from {r.restarted_from} at t = {dem.time:.6g} s" if ckpt else "DEM"
     end = case.run.end_time
-    out_every = case.output.particle_interval
-    log.info(f"DEM: {dem.count()} particles on {comm.size} process(es), dt = {dt:.3e} s "
+    log.info(f"{start}: {dem.count()} particles on {comm.size} process(es), dt = {dem.dt:.3e} s "
              f"(T_C/{dem.params.dt_factor:g}), {dem.params.integrator}, law {dem.params.contact_model}, "
              f"to t = {end:g} s")  # fmt: skip
-    writer.write(dem.time, dem.particles)
-    write_status(outdir, "running", dem.time, end, dem.steps, comm=comm)
-    _log_balance(dem, log)
-    next_out = out_every
-    start_wall = last_log = time.time()
-    left_total = 0
-    while dem.time < end - 0.5 * dt:
-        target = min(end, next_out)
-        n = max(1, int(round((target - dem.time) / dt)))
-        chunk = min(n, 2000)
-        try:
-            dem.advance(chunk, dt)
-        except DEMFailure as e:  # raised on every rank
-            write_status(outdir, "failed", dem.time, end, dem.steps, message=str(e), comm=comm)
-            log.error(f"run failed: the particles blew up: {e}")
-            raise
-        x = dem.particles.pos[: dem.particles.n_owned]
-        gone = np.any((x < lo) | (x > hi), axis=1)
-        if gone.any():
-            left_total += int(gone.sum())
-            dem.remove_particles(gone)
-        if dem.time >= next_out - 0.5 * dt:
-            writer.write(dem.time, dem.particles)
-            _log_balance(dem, log)
-            next_out += out_every
-        now = comm.bcast(time.time(), root=0)  # every rank takes the same branch (collective counts)
-        if now - last_log > case.output.progress_interval:
-            frac = dem.time / end
-            eta = (now - start_wall) * (1 - frac) / max(frac, 1e-12)
-            log.info(f"t = {dem.time:.5f} / {end:g} s, {dem.steps} steps, {dem.count()} particles, "
-                     f"{comm.allreduce(left_total)} left, ETA {eta:.0f} s")  # fmt: skip
-            last_log = now
-    left_total = comm.allreduce(left_total)
-    write_status(outdir, "finished", dem.time, end, dem.steps, comm=comm)
+    wall0 = time.time()
+    restore_signals = r.catch_signals()
+    try:
+        r.advance_to(end)
+        r.checkpoint()
+        r.status("finished")
+    finally:
+        restore_signals()
+    left = comm.allreduce(r.left)
     log.info(
-        f"DEM done: t = {dem.time:.5f} s, {dem.steps} steps in {time.time() - start_wall:.1f} s; "
-        f"max overlap {100 * dem.global_max(dem.max_overlap):.3f} % d; {left_total} particles left the domain"
+        f"DEM done: t = {dem.time:.5f} s, {dem.steps} steps in {time.time() - wall0:.1f} s; "
+        f"max overlap {100 * dem.global_max(dem.max_overlap):.3f} % d; {left} particles left the domain"
     )
     if dem.exchange is not None:
         t = dem.exchange.timers
