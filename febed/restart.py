@@ -1,4 +1,7 @@
-"""Checkpoint and restart of a coupled run: what the state is, and which case changes a restart accepts.
+"""Checkpoint and restart of a run: what the state is, and which case changes a restart accepts.
+
+A pure-DEM run (`febed.dem.driver.DEMRun`) checkpoints the particle part below (`dem_arrays`, `load_dem`)
+with its particle-output schedule; every checkpoint records its run mode and continues only that mode.
 
 The state of a coupled run (`capture`) is
 
