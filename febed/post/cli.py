@@ -86,6 +86,7 @@ def cmd_post(args) -> int:
             f"walls {v['bed_flux_walls/rhoUf']:+.1f}; bubble fraction {v['bubble_fraction']:.3f}; "
             f"q_p^2/U_f^2 in the bed {v['q2_bed/Uf2']:.4f}"
         )
+        print(f"  the bottom wall carries {v['bottom_support/W']:.3f} of the bed weight by contact")
     for f in res.files:
         print(f"  wrote {f}")
     return 0

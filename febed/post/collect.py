@@ -19,6 +19,7 @@ import numpy as np
 
 from febed.post.rundata import list_snapshots, run_info, select_window
 from febed.post.series import read_series, summarize, weight_per_area
+from febed.post.support import bottom_support
 
 
 def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict, tuple | None]:
@@ -31,7 +32,7 @@ def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict
         "t_reached": nan, "dp_bed_mean": nan, "dp_bed_std": nan, "weight_per_area": nan, "dp_bed_over_weight": nan,
         "bed_height_mean": nan, "bed_height_std": nan, "bed_height_over_H": nan, "snapshots": 0,
         "flux_centre/rhoUf": nan, "flux_walls/rhoUf": nan, "bed_flux_centre/rhoUf": nan, "bed_flux_walls/rhoUf": nan,
-        "bubble_fraction": nan, "q2_bed/Uf2": nan,
+        "bubble_fraction": nan, "q2_bed/Uf2": nan, "bottom_support/W": nan,
     })  # fmt: skip
     if state == "new":
         return row, None
@@ -91,6 +92,8 @@ def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict
             row["bed_flux_centre/rhoUf"], row["bed_flux_walls/rhoUf"] = c / s["rhoU_f"], w / s["rhoU_f"]
             row["bubble_fraction"] = avg.bubble_fraction(0.8 * h)
             row["q2_bed/Uf2"] = avg.bed_agitation(h) / s["U_f"] ** 2
+    if avg is not None:
+        row["bottom_support/W"] = bottom_support(m.directory, info, avg.window)
     return row, profile
 
 
@@ -113,6 +116,7 @@ def _figures(study, rows: list[dict], profiles: dict, height: float, out: Path) 
         ("flux_walls/rhoUf", f"solid flux/ρU_f, walls, z/H={height:g}"),
         ("bubble_fraction", "bubble fraction below 0.8 H_bed"),
         ("q2_bed/Uf2", r"$q_p^2/U_f^2$ in the bed"),
+        ("bottom_support/W", "weight on the bottom by contact / W"),
     ]
     quantities = [(q, lab) for q, lab in quantities if any(math.isfinite(r[q]) for r in rows)]
     for p in varied if quantities else []:

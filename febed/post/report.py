@@ -12,7 +12,9 @@ Files written (x/L, z/H, q_p²/U_f², flux/ρU_f, t/(d_p/U_f): seed 001 §4 scal
                                   rows, central third and outer 15 % of the width (seed 001's mixing loops);
                                   bubble_fraction: the share of the bins below 0.8 × the bed height that
                                   are void (α_p < bubble_alpha, default 0.15) in a snapshot, averaged;
-                                  q2_bed/Uf2: the solid-volume-weighted agitation energy below the bed height
+                                  q2_bed/Uf2: the solid-volume-weighted agitation energy below the bed height;
+                                  bottom_support/W: the share of the bed weight the bottom wall carries by
+                                  contact (febed.post.support), which dp_bed/(W/A) then lacks
     fields.png, profile_zH<h>.png, timeseries.png, snapshots.png (instantaneous 1 - α_p, seed 001 Fig 15)
 """
 
@@ -29,6 +31,7 @@ from febed.post.fields import AveragedFields, average_fields
 from febed.post.grid import BUBBLE_ALPHA
 from febed.post.rundata import list_snapshots, run_info
 from febed.post.series import SeriesSummary, read_series, summarize, weight_per_area
+from febed.post.support import bottom_support
 
 DEFAULT_HEIGHTS = (0.092,)  # z/H of seed 001 Figs 13, 18
 
@@ -155,6 +158,7 @@ def post_run(
         values["bubble_alpha"] = avg.bubble_alpha
         values["bubble_fraction"] = avg.bubble_fraction(0.8 * h_bed) if math.isfinite(h_bed) else nan
         values["q2_bed/Uf2"] = avg.bed_agitation(h_bed) / s["U_f"] ** 2 if math.isfinite(h_bed) else nan
+        values["bottom_support/W"] = bottom_support(run_dir, info, avg.window)
         for h in heights:
             x, fz = avg.profile("mass_flux_z", h * info.height)
             _, a = avg.profile("alpha_p", h * info.height)

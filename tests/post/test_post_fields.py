@@ -32,10 +32,10 @@ density = {RHO_P}
 """
 
 
-def make_run(path, snapshots, missing=(), corrupt=()):
+def make_run(path, snapshots, missing=(), corrupt=(), case=CASE):
     """A fake run folder: case.resolved.toml + particles/*.vtp + particles.pvd (+ listed missing/corrupt files)."""
     (path / "particles").mkdir(parents=True)
-    (path / "case.resolved.toml").write_text(CASE)
+    (path / "case.resolved.toml").write_text(case)
     rows = []
     for k, (t, pos, vel, *gid) in enumerate(snapshots):
         name = f"particles_{k:06d}.vtp"
@@ -344,3 +344,27 @@ def test_scg_run_uses_the_coarse_grain_density(tmp_path):
     text = (tmp_path / "r" / "case.resolved.toml").read_text()
     (tmp_path / "r" / "case.resolved.toml").write_text(text + '[coarse_grain]\nmodel = "scg"\nratio = 4.0\n')
     assert run_info(tmp_path / "r").rho_p == pytest.approx(RHO_P / 16, rel=1e-14)  # ρ d²/(4 d)², seed 003 eq 7
+
+
+@pytest.mark.parametrize("contact", ["stiffness = 800.0", "stiffness = 5.0\nstiffness_wall = 800.0"])
+def test_bottom_support_is_the_elastic_force_of_the_overlaps(tmp_path, contact):
+    """Particles pressed into the bottom plane by known overlaps: k_n,w Σδ over the buoyant weight, averaged."""
+    from febed.post.rundata import run_info
+    from febed.post.support import bottom_support
+
+    pos, _, _ = lattice()
+    n = len(pos)
+    snaps = []
+    for k, deltas in enumerate(([1e-5, 3e-5, 0.0], [2e-5, 0.0, 0.0])):
+        p = pos.copy()
+        p[:3, 2] = 0.5 * DP - np.asarray(deltas)  # the first three rest on the bottom (0 overlap: touching)
+        snaps.append((0.1 * k, p, np.zeros_like(p)))
+    run = make_run(tmp_path / "r", snaps, case=CASE + f"[contact]\n{contact}\n")
+    weight = (RHO_P - RHO_G) * 9.81 * n * VP
+    expect = np.mean([800.0 * 4e-5 / weight, 800.0 * 2e-5 / weight])
+    assert bottom_support(run, run_info(run), (0.0, 0.1)) == pytest.approx(expect, rel=1e-9)
+    assert post_run(run, bins=BINS, figures=False, window=(0.0, 0.1)).values["bottom_support/W"] == pytest.approx(
+        expect, rel=1e-9
+    )
+    tm = make_run(tmp_path / "tm", snaps, case=CASE + f'[contact]\n{contact}\n[coarse_grain]\nmodel = "tm"\n')
+    assert math.isnan(bottom_support(tm, run_info(tm)))  # parcels' stiffness: not covered
