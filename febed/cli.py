@@ -10,8 +10,8 @@
 
 Errors in the user's input (case, mesh, output folder, values a solver refuses) are printed as one clear
 message and exit with status 2; a run that fails (a particle escaping, ...) exits with status 3 after
-writing its last good state as a checkpoint; a run stopped by SIGINT/SIGTERM writes a checkpoint and exits
-with 128 + the signal number (130, 143); a traceback means a bug in febed (`febed run -v` shows the
+writing its last good state as a checkpoint; a run stopped by SIGINT/SIGTERM/SIGUSR1 writes a checkpoint and
+exits with 128 + the signal number (130, 143, 138); a traceback means a bug in febed (`febed run -v` shows the
 traceback of a refused value too).
 """
 

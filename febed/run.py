@@ -11,13 +11,15 @@ steps it writes
   every `particle_interval`, for ParaView;
 * a progress line every `progress_interval` wall seconds (live on a terminal, always in `febed.log`);
 * checkpoints (`checkpoints/checkpoint_<step>.npz`, see `febed.io.checkpoint` and `febed.restart`) every
-  `checkpoint_interval` simulated or `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM and at
+  `checkpoint_interval` simulated or `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM/SIGUSR1 and at
   the end; `status.json` says whether the run is running, finished, failed or interrupted.
 
 After every gas step the solver's health checks run (`CoupledSolver.check`). A failure stops the run with
 its message, writes the last state that passed the checks (kept in memory at each probe time) as a
-checkpoint, and exits non-zero. SIGINT/SIGTERM (Ctrl-C, a batch system's time limit) finish the current
-gas step, write a checkpoint and stop (`Interrupted`); ranks agree on the step at which they stop.
+checkpoint, and exits non-zero. SIGINT/SIGTERM/SIGUSR1 (Ctrl-C, a batch system's time limit) finish the
+current gas step, write a checkpoint and stop (`Interrupted`); ranks agree on the step at which they stop.
+Under Open MPI's mpirun, SIGUSR1 is the one to send: mpirun forwards it to the ranks as it is, whereas on
+SIGTERM or SIGINT it kills them after a short grace that a gas step on a loaded machine can outlast.
 
 Definitions:
 
@@ -50,6 +52,8 @@ from febed.io.probes import ProbeFile
 from febed.io.progress import Progress, clock
 from febed.io.rundir import write_status
 from febed.solver import RunFailure, build_solver
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # finish the step, checkpoint, stop
 
 
 def agree(comm, sig: int, *due: bool) -> tuple:
@@ -417,7 +421,7 @@ class CoupledRun:
 
     # ---------------------------------------------------------------------------------------- signals
     def catch_signals(self):
-        """Handle SIGINT/SIGTERM by stopping after the current gas step; returns a function restoring them."""
+        """Handle STOP_SIGNALS by stopping after the current gas step; returns a function restoring the handlers."""
         import threading
 
         if threading.current_thread() is not threading.main_thread():
@@ -429,7 +433,7 @@ class CoupledRun:
             self._signal = signum
             self.log.warning(f"{signal.Signals(signum).name} received: stopping after this gas step")
 
-        old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+        old = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
         return lambda: [signal.signal(k, v) for k, v in old.items()]
 
 

@@ -16,7 +16,7 @@ partition inside `DEM.advance`. Output gathers every particle once; the log give
 imbalance (max/mean particles per rank) at each output.
 
 Like a coupled run, a pure-DEM run (`DEMRun`) writes checkpoints (every `[output] checkpoint_interval`
-simulated or `checkpoint_wall_interval` wall seconds, on Ctrl-C/SIGTERM, at the end, and the last good
+simulated or `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM/SIGUSR1, at the end, and the last good
 state when the particles blow up), continues from one with `febed run CASE --restart` on any number of
 ranks, shows a progress line and keeps `status.json` up to date.
 """
@@ -227,7 +227,7 @@ class DEMRun:
 
     Checkpoints (`checkpoints/checkpoint_<step>.npz`, the same files as a coupled run's: the DEM state by
     global id, `febed.restart.dem_arrays`) are written every `[output] checkpoint_interval` simulated or
-    `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM and at the end. The state at each particle
+    `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM/SIGUSR1 and at the end. The state at each particle
     output is kept in memory: a blow-up (`DEMFailure`) writes it as the last good checkpoint.
     """
 
@@ -397,7 +397,7 @@ class DEMRun:
         self.log.error(f"run failed: {message}{where}")
 
     def catch_signals(self):
-        """Handle SIGINT/SIGTERM by stopping after the current chunk of steps; returns a function restoring them."""
+        """Handle `febed.run.STOP_SIGNALS` by stopping after the current chunk of steps; returns the restorer."""
         import signal
         import threading
 
@@ -410,7 +410,9 @@ class DEMRun:
             self._signal = signum
             self.log.warning(f"{signal.Signals(signum).name} received: stopping after these DEM steps")
 
-        old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+        from febed.run import STOP_SIGNALS
+
+        old = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
         return lambda: [signal.signal(k, v) for k, v in old.items()]
 
 
