@@ -229,6 +229,9 @@ def main(argv: list[str] | None = None) -> int:
     except Interrupted as e:
         _say(f"febed: {e}", err=True)
         return 128 + e.signum
+    except KeyboardInterrupt:  # Ctrl-C while setting up (packing a bed, building a mesh) or a second Ctrl-C
+        _say("febed: interrupted (Ctrl-C) before a checkpoint could be written", err=True)
+        return 130
     except CheckpointError as e:
         _say(f"febed: error: {e}", err=True)
     except ValueError as e:  # a value the solvers refuse, with their message (-v shows the traceback)

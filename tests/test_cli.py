@@ -93,3 +93,15 @@ def test_mesh_command(tmp_path):
 def test_console_script_runs():
     res = subprocess.run([sys.executable, "-m", "febed.cli", "--help"], capture_output=True, text=True)
     assert res.returncode == 0 and "febed" in res.stdout
+
+
+def test_ctrl_c_during_set_up_is_a_message_and_status_130(case_file, monkeypatch, capsys):
+    """A Ctrl-C before the run's signal handlers are up (meshing, packing) or a second one: no traceback."""
+    from febed import cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "cmd_check", interrupted)
+    assert cli.main(["check", str(case_file)]) == 130
+    assert "interrupted (Ctrl-C) before a checkpoint could be written" in capsys.readouterr().err
