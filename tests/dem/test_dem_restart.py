@@ -41,8 +41,12 @@ directory = "{out}"
 
 
 def case_at(folder, end, out, **extra):
+    """The case file for `end` (written by rank 0 only: two ranks writing one file raced, and a rank that read
+    it half-written failed alone and hung the other), loaded on every rank."""
     path = folder / f"case-{end:g}.toml"
-    path.write_text(CASE.format(end=end, out=out))
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(CASE.format(end=end, out=out))
+    MPI.COMM_WORLD.barrier()
     return load_case(path, [f"{k}={v}" for k, v in extra.items()])
 
 
