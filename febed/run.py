@@ -422,19 +422,28 @@ class CoupledRun:
     # ---------------------------------------------------------------------------------------- signals
     def catch_signals(self):
         """Handle STOP_SIGNALS by stopping after the current gas step; returns a function restoring the handlers."""
-        import threading
+        return catch_stop_signals(self, "this gas step")
 
-        if threading.current_thread() is not threading.main_thread():
-            return lambda: None
 
-        def handler(signum, frame):
-            if self._signal:  # a second Ctrl-C: stop now
-                raise KeyboardInterrupt
-            self._signal = signum
-            self.log.warning(f"{signal.Signals(signum).name} received: stopping after this gas step")
+def catch_stop_signals(run, after: str):
+    """Install STOP_SIGNALS handlers that set `run._signal` (logged to `run.log`: "stopping after `after`").
 
-        old = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
-        return lambda: [signal.signal(k, v) for k, v in old.items()]
+    A second signal raises KeyboardInterrupt (stop now). Returns a function restoring the previous handlers;
+    outside the main thread (no handlers possible) a no-op.
+    """
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def handler(signum, frame):
+        if run._signal:  # a second Ctrl-C: stop now
+            raise KeyboardInterrupt
+        run._signal = signum
+        run.log.warning(f"{signal.Signals(signum).name} received: stopping after {after}")
+
+    old = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
+    return lambda: [signal.signal(k, v) for k, v in old.items()]
 
 
 def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):

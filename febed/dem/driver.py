@@ -398,22 +398,9 @@ class DEMRun:
 
     def catch_signals(self):
         """Handle `febed.run.STOP_SIGNALS` by stopping after the current chunk of steps; returns the restorer."""
-        import signal
-        import threading
+        from febed.run import catch_stop_signals
 
-        if threading.current_thread() is not threading.main_thread():
-            return lambda: None
-
-        def handler(signum, frame):
-            if self._signal:  # a second Ctrl-C: stop now
-                raise KeyboardInterrupt
-            self._signal = signum
-            self.log.warning(f"{signal.Signals(signum).name} received: stopping after these DEM steps")
-
-        from febed.run import STOP_SIGNALS
-
-        old = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
-        return lambda: [signal.signal(k, v) for k, v in old.items()]
+        return catch_stop_signals(self, "these DEM steps")
 
 
 CHUNK = 500  # DEM steps per `advance` call between output, signal and progress checks
