@@ -73,7 +73,8 @@ def _parser() -> argparse.ArgumentParser:
         nargs="?",
         const="latest",
         metavar="CHECKPOINT",
-        help="continue the run in the case's output folder from its newest valid checkpoint (or this file)",
+        help="continue the run in the case's output folder from its newest valid checkpoint (or from this "
+        "checkpoint file, or the newest one in this folder)",
     )
     r.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     c = sub.add_parser("check", help="validate a case (and its mesh tags) without running it")

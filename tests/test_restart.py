@@ -18,7 +18,14 @@ import numpy as np
 import pytest
 
 from febed.cli import main
-from febed.io.checkpoint import latest_valid, list_checkpoints, read_checkpoint, write_checkpoint
+from febed.io.checkpoint import (
+    CheckpointError,
+    latest_valid,
+    list_checkpoints,
+    load_checkpoint,
+    read_checkpoint,
+    write_checkpoint,
+)
 from febed.io.probes import read_probes
 from febed.io.progress import Progress
 from febed.restart import case_changes
@@ -142,6 +149,23 @@ def test_checkpoint_files_are_rotated_and_unwritable_folder_is_reported(tmp_path
         ro.mkdir(mode=0o500)
         with pytest.raises(Exception, match="cannot write checkpoint"):
             write_checkpoint(ro, {"a": np.arange(3)}, {"step": 1, "time": 0.0}, keep=2)
+
+
+def test_load_checkpoint_takes_a_file_a_checkpoint_folder_or_a_run_folder(tmp_path):
+    run = tmp_path / "run"
+    for step in (3, 7):
+        write_checkpoint(run / "checkpoints", {"a": np.arange(step)}, {"step": step, "time": 0.1 * step}, keep=2)
+    newest = run / "checkpoints" / "checkpoint_000000007.npz"
+    for where in (newest, run / "checkpoints", run):
+        path, arrays, meta = load_checkpoint(where)
+        assert path == newest and meta["step"] == 7 and arrays["a"].size == 7
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match=r"no valid checkpoint in .*empty \(no checkpoint_<step>.npz files\)"):
+        load_checkpoint(tmp_path / "empty")
+    newest.write_bytes(b"PK\x03\x04 truncated")
+    (run / "checkpoints" / "checkpoint_000000003.npz").write_bytes(b"")
+    with pytest.raises(CheckpointError, match=r"2 checkpoint file\(s\), none readable"):
+        load_checkpoint(run)
 
 
 @pytest.mark.parametrize(

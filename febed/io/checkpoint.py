@@ -117,13 +117,21 @@ def latest_valid(folder: Path) -> Path | None:
 
 
 def load_checkpoint(where: Path, comm=MPI.COMM_WORLD) -> tuple[Path, dict[str, np.ndarray], dict]:
-    """Path, arrays and meta of checkpoint `where` (a file, or a folder: its newest valid one), on every rank."""
+    """Path, arrays and meta of checkpoint `where`, on every rank.
+
+    `where` is a checkpoint file, a folder of checkpoints or a run folder (its `checkpoints/` folder): of a
+    folder, the newest checkpoint that reads completely.
+    """
     where = Path(where)
     result = None
     if comm.rank == 0:
+        if where.is_dir() and not list_checkpoints(where) and (where / FOLDER).is_dir():
+            where = where / FOLDER  # a run folder
         path = latest_valid(where) if where.is_dir() else where
         if path is None:
-            result = CheckpointError(f"no valid checkpoint in {where}")
+            found = len(list_checkpoints(where))
+            why = f"{found} checkpoint file(s), none readable" if found else "no checkpoint_<step>.npz files"
+            result = CheckpointError(f"no valid checkpoint in {where} ({why})")
         else:
             try:
                 result = (path, *read_checkpoint(path))
