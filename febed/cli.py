@@ -38,7 +38,7 @@ RUNNERS = {
     "one-way": "febed.coarse.oneway",
 }
 
-RESTARTABLE = ("cfd-dem", "dem")  # modes whose runs write checkpoints and continue from them
+RESTARTABLE = ("cfd-dem", "dem", "gas")  # modes whose runs write checkpoints and continue from them
 
 
 class UserError(Exception):

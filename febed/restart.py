@@ -1,7 +1,9 @@
 """Checkpoint and restart of a run: what the state is, and which case changes a restart accepts.
 
 A pure-DEM run (`febed.dem.driver.DEMRun`) checkpoints the particle part below (`dem_arrays`, `load_dem`)
-with its particle-output schedule; every checkpoint records its run mode and continues only that mode.
+with its particle-output schedule, a gas-only run (`febed.gas.driver.GasRun`) the gas part (`gas_arrays`,
+`restore_gas`) with its field-output schedule; every checkpoint records its run mode and continues only that
+mode.
 
 The state of a coupled run (`capture`) is
 
@@ -101,10 +103,7 @@ def case_changes(old_toml: str, new_toml: str) -> tuple[list[str], list[str]]:
 def capture(run) -> tuple[dict[str, np.ndarray], dict]:
     """This rank's state of a `CoupledRun` (copies): arrays and a JSON-able meta record."""
     s = run.solver
-    gas = s.gas
-    n = gas.n_owned
-    arrays = {f"gas/{k}": v for k, v in gas.get_state().items()}
-    arrays["gas/x"] = gas.x[:n].copy()
+    arrays = gas_arrays(s.gas)
     arrays.update(dem_arrays(s.dem))
     meta = {
         "time": s.t,
@@ -124,6 +123,22 @@ def capture(run) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, meta
 
 
+def gas_arrays(gas) -> dict[str, np.ndarray]:
+    """This rank's gas state as checkpoint arrays `gas/<key>` (copies), with the owned nodes' coordinates."""
+    arrays = {f"gas/{k}": v for k, v in gas.get_state().items()}
+    arrays["gas/x"] = gas.x[: gas.n_owned].copy()
+    return arrays
+
+
+def restore_gas(gas, arrays: dict[str, np.ndarray], t: float, comm=MPI.COMM_WORLD) -> None:
+    """Put a checkpoint's `gas/` arrays into `gas` at time t, finding this rank's nodes by position (collective)."""
+    n = gas.n_owned
+    width = float(np.min(gas.ops.width[:n], initial=np.inf))
+    h = comm.allreduce(width, op=MPI.MIN)
+    idx = match_nodes(arrays["gas/x"], gas.x[:n], h)
+    gas.set_state({k[4:]: v[idx] for k, v in arrays.items() if k.startswith("gas/") and k != "gas/x"}, t)
+
+
 def dem_arrays(dem) -> dict[str, np.ndarray]:
     """This rank's DEM state as checkpoint arrays `dem/<key>` (copies), the contact history keyed by gids too."""
     state = dem.get_state()
@@ -140,6 +155,8 @@ def gather(arrays: dict[str, np.ndarray], meta: dict, comm=MPI.COMM_WORLD) -> di
     rows = {k: v for k, v in arrays.items() if k.startswith("gas/") or k.startswith(f"dem/{_ROWS}")}
     rows.update({f"dem/{k}": arrays[f"dem/{k}"] for k in _HISTORY if f"dem/{k}" in arrays})
     out = gather_rows(rows, comm)
+    if "dem/p_gid" not in arrays:  # a gas-only run
+        return out
     scalars = ("time", "steps", "dt", "pl_skin", "pl_builds", "max_overlap", "walls_count")
     top = comm.allreduce(int(arrays["dem/p_gid"].max(initial=-1)), op=MPI.MAX)
     if comm.rank == 0:
@@ -160,12 +177,7 @@ def restore(run, arrays: dict[str, np.ndarray], meta: dict) -> None:
     """Put a checkpoint's state into a freshly built `CoupledRun` (every rank holds the whole checkpoint)."""
     s = run.solver
     comm = run.comm
-    gas = s.gas
-    n = gas.n_owned
-    width = float(np.min(gas.ops.width[:n], initial=np.inf))
-    h = comm.allreduce(width, op=MPI.MIN)
-    idx = match_nodes(arrays["gas/x"], gas.x[:n], h)
-    gas.set_state({k[4:]: v[idx] for k, v in arrays.items() if k.startswith("gas/") and k != "gas/x"}, meta["time"])
+    restore_gas(s.gas, arrays, meta["time"], comm)
     reload_particles(run, arrays, meta)
     sm = meta["solver"]
     s.t, s.steps = float(meta["time"]), int(meta["step"])

@@ -2,13 +2,24 @@
 
 The void fraction is the uniform `gas.void_fraction`, or (Python API) a callable eps(x, t) of the node
 coordinates x (n, 3) and the time t returning (n,) values in (0, 1]. Fields u, p, ε are written as XDMF
-(`fields.xdmf` in the output folder) every `output.field_interval`, and a progress line is logged every
-`output.progress_interval` seconds of wall-clock time.
+(`fields.xdmf` in the output folder; `fields.restart<k>.xdmf` after the k-th restart) every
+`output.field_interval`.
+
+Like coupled and pure-DEM runs, a gas-only run (`GasRun`) shows a progress line (simulated time, step, Δt,
+CFL, Poisson iterations, wall time per simulated second, ETA) every `output.progress_interval` wall seconds,
+live on a terminal and always in `febed.log`; keeps `status.json` up to date; writes checkpoints (the gas
+state at the owned nodes with their coordinates, `febed.restart.gas_arrays`) every
+`output.checkpoint_interval` simulated or `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM/SIGUSR1
+and at the end, and continues from one with `febed run CASE --restart` on any number of ranks. After every
+step the velocity and pressure are checked: a non-finite value, or a pressure solve that does not converge,
+stops the run with a message naming the node and the time, writes the last state that passed (kept every
+`GOOD_EVERY` steps and at each field output and progress line) as a checkpoint and exits with status 3.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -16,51 +27,243 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed import restart as rs
+from febed.gas.pressure import PressureSolveError
 from febed.gas.vans import VANSSolver
 from febed.io.fields import FieldWriter
+from febed.io.progress import Progress, clock
+
+GOOD_EVERY = 10  # gas steps between the copies of the state kept as the last good one (and at every output)
 
 
-def run(case, outdir, log: logging.Logger | None = None, eps=None, mesh_data=None) -> VANSSolver:
-    """Run a gas-only case to `run.end_time`; write fields to `outdir`; return the solver at the end."""
-    from febed.meshing import load_case_mesh
+class GasRun:
+    """A gas-only run with its output: `advance_to(t)` steps the gas, writing fields, checkpoints, progress."""
+
+    def __init__(self, case, outdir: Path, log, comm=MPI.COMM_WORLD, eps=None, mesh_data=None, restart=None):
+        """Build the mesh (unless `mesh_data` is given) and the solver; `restart`: (path, arrays, meta) to continue.
+
+        `eps`: None for the uniform `gas.void_fraction`, or a callable eps(x, t) -> (n,) array.
+        """
+        from febed.meshing import load_case_mesh
+
+        if eps is not None and not callable(eps):
+            raise ValueError("eps must be a callable eps(x, t) -> (n,) array, or None for gas.void_fraction")
+        self.case, self.outdir, self.log, self.comm = case, Path(outdir), log, comm
+        self.md = mesh_data if mesh_data is not None else load_case_mesh(case, comm, cache_dir=self.outdir / "mesh")
+        self.eps = eps
+        self.solver = s = VANSSolver.from_case(case, self.md)
+        self.steps = 0
+        self.segment = 0  # restarts so far
+        self.next_out = case.output.field_interval
+        self.restarted_from = None
+        if restart is not None:
+            path, arrays, meta = restart
+            rs.restore_gas(s, arrays, float(meta["time"]), comm)
+            self.steps = int(meta["step"])
+            self.segment = int(meta["run"]["segment"]) + 1
+            self.next_out = float(meta["run"]["next_out"])
+            self.restarted_from = path
+        elif eps is not None:
+            s.set_void_fraction(eps(s.x, 0.0))
+        self.next_ckpt = s.t + case.output.checkpoint_interval
+        name = "fields.xdmf" if self.segment == 0 else f"fields.restart{self.segment}.xdmf"
+        self.writer = FieldWriter(self.outdir / name, self.md.mesh, s.functions(), comm)
+        self.display = Progress(log, comm.rank)
+        self.good = None  # (arrays, meta) of the last state that passed the checks
+        self.last_info = None
+        self._signal = 0
+        self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
+        self._t0, self._steps0 = s.t, self.steps
+
+    # ------------------------------------------------------------------------------------ state
+    def capture(self) -> tuple[dict, dict]:
+        """This rank's gas state (copies) and the JSON-able meta record of a checkpoint."""
+        s = self.solver
+        meta = {
+            "time": s.t,
+            "step": self.steps,
+            "ranks": self.comm.size,
+            "mode": "gas",
+            "run": {"next_out": self.next_out, "segment": self.segment},
+        }
+        return rs.gas_arrays(s), meta
+
+    def checkpoint(self, state=None) -> Path:
+        """Write a checkpoint of the current state, or of `state` from `capture` (collective)."""
+        from febed.io.checkpoint import FOLDER, CheckpointError, write_checkpoint
+        from febed.solver import RunFailure
+
+        arrays, meta = state if state is not None else self.capture()
+        meta = {**meta, "case": self.case.to_toml()}
+        try:
+            path = write_checkpoint(
+                self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta, self.case.output.keep_checkpoints,
+                self.comm,
+            )  # fmt: skip
+        except CheckpointError as e:
+            raise RunFailure(str(e)) from None
+        self._last_checkpoint = time.perf_counter()
+        self.next_ckpt = self.solver.t + self.case.output.checkpoint_interval
+        self.log.info(f"checkpoint at t = {meta['time']:.6g} s (gas step {meta['step']}): {path}")
+        return path
+
+    def status(self, state: str, message: str = "") -> None:
+        """Write `status.json` (running / finished / failed / interrupted)."""
+        from febed.io.rundir import write_status
+
+        write_status(self.outdir, state, self.solver.t, self.case.run.end_time, self.steps, message, self.comm)
+
+    def problem(self) -> str | None:
+        """What is wrong with the gas fields after a step (the same on every rank; collective), or None."""
+        s = self.solver
+        msg = None
+        for name, a in (("velocity u", s.u), ("pressure p", s.p)):
+            ok = np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+            if not ok.all():
+                k = int(np.flatnonzero(~ok)[0])
+                msg = (
+                    f"gas {name} is not finite at the node at {np.round(s.x[k], 6).tolist()} m at t = {s.t:.6g} s "
+                    f"(gas step {self.steps}); lower gas.cfl or gas.dt_max"
+                )
+                break
+        found = [m for m in self.comm.allgather(msg) if m] if self.comm.size > 1 else [msg] if msg else []
+        return found[0] if found else None
+
+    # ------------------------------------------------------------------------------------- loop
+    def advance_to(self, end: float) -> None:
+        """Step to `end` (s), writing fields, checkpoints and progress (collective).
+
+        Raises RunFailure (after writing the last good state) or `febed.run.Interrupted` (after a checkpoint).
+        """
+        from febed.run import Interrupted, agree
+        from febed.solver import RunFailure
+
+        s = self.solver
+        o = self.case.output
+        if self.restarted_from is None and self.steps == 0:
+            self.writer.write(s.t)
+        if self.good is None:
+            self.good = self.capture()
+        self.status("running")
+        while s.t < end * (1 - 1e-12):
+            dt = s.compute_dt()
+            stop = min(end, self.next_out)
+            if s.t + dt > stop - 1e-9 * dt:  # land exactly on the next output / end time
+                dt = stop - s.t
+            eps = self.eps(s.x, s.t + dt) if self.eps is not None else None
+            try:
+                self.last_info = s.step(dt, eps=eps)
+            except PressureSolveError as e:  # raised on every rank
+                err = RunFailure(f"{e} in the gas step from t = {s.t:.6g} s (gas step {self.steps + 1})")
+                self.fail(err)
+                raise err from None
+            self.steps += 1
+            problem = self.problem()
+            if problem:
+                err = RunFailure(problem)
+                self.fail(err)
+                raise err
+            wrote = s.t >= self.next_out * (1 - 1e-12)
+            if wrote:
+                self.writer.write(s.t)
+                self.next_out += o.field_interval
+            now = time.perf_counter()
+            sig, wall_due, show = agree(
+                self.comm, self._signal, now - self._last_checkpoint >= o.checkpoint_wall_interval,
+                now - self._last_progress >= o.progress_interval,
+            )  # fmt: skip
+            if wrote or show or self.steps % GOOD_EVERY == 0:
+                self.good = self.capture()
+            if sig or wall_due or s.t >= self.next_ckpt - 1e-12 * end:
+                self.checkpoint()
+            if sig:
+                import signal
+
+                name = signal.Signals(sig).name
+                self.display.end()
+                self.status("interrupted", f"stopped by {name}")
+                raise Interrupted(
+                    sig, f"stopped by {name} at t = {s.t:.6g} s after a checkpoint; continue with --restart"
+                )
+            if show:
+                self.progress(end)
+        self.progress(end)
+        self.display.end()
+
+    def progress(self, end: float) -> None:
+        """The progress line: simulated time, step, Δt, CFL, Poisson iterations, wall time rate, ETA."""
+        now = time.perf_counter()
+        self._last_progress = now
+        s = self.solver
+        done = s.t - self._t0
+        steps = self.steps - self._steps0
+        rate = (now - self._wall0) / done if done > 0 else math.nan
+        info = self.last_info
+        gas = (
+            f"dt {info.dt:.3g} s  CFL {info.cfl:.3f}  Poisson its {info.poisson_iterations}  "
+            f"mass imbalance {info.mass_imbalance:.3g} kg/s  "
+            if info is not None
+            else ""
+        )
+        per_step = f"{1e3 * (now - self._wall0) / steps:.1f} ms/step  " if steps else ""
+        self.display.show(
+            f"t = {s.t:.5g} / {end:g} s  step {self.steps}  {gas}{per_step}{rate / 60:.2f} min wall per simulated s  "
+            f"ETA {clock(rate * (end - s.t))}"
+        )
+
+    def fail(self, error) -> None:
+        """Record a failure: write the last good state as a checkpoint and the status (collective)."""
+        from febed.solver import RunFailure
+
+        self.display.end()
+        where = ""
+        if self.good is not None:
+            try:
+                path = self.checkpoint(self.good)
+                where = f"; last good state (t = {self.good[1]['time']:.6g} s) in {path}"
+            except RunFailure as e:
+                where = f"; could not write the last good state: {e}"
+        self.status("failed", f"{error}{where}")
+        self.log.error(f"run failed: {error}{where}")
+
+    def catch_signals(self):
+        """Handle `febed.run.STOP_SIGNALS` by stopping after the current gas step; returns the restorer."""
+        from febed.run import catch_stop_signals
+
+        return catch_stop_signals(self, "this gas step")
+
+    def close(self) -> None:
+        """Close the field file."""
+        self.writer.close()
+
+
+def run(case, outdir, log: logging.Logger | None = None, eps=None, mesh_data=None, restart=None) -> VANSSolver:
+    """Run a gas-only case to `run.end_time`; write fields to `outdir`; return the solver at the end.
+
+    `restart`: a checkpoint file or (run) folder to continue from (its newest valid checkpoint).
+    """
+    from febed.io.checkpoint import load_checkpoint
 
     log = log or logging.getLogger("febed")
-    outdir = Path(outdir)
-    md = mesh_data if mesh_data is not None else load_case_mesh(case, MPI.COMM_WORLD, cache_dir=outdir / "mesh")
-    if eps is not None and not callable(eps):
-        raise ValueError("eps must be a callable eps(x, t) -> (n,) array, or None for gas.void_fraction")
-    eps_at = eps if eps is not None else (lambda x, t: np.full(x.shape[0], case.gas.void_fraction))
-    solver = VANSSolver.from_case(case, md)
-    x = solver.x
-    if eps is not None:
-        solver.set_void_fraction(eps_at(x, 0.0))
-    end, every = case.run.end_time, case.output.field_interval
+    comm = MPI.COMM_WORLD
+    ckpt = None
+    if restart is not None:
+        ckpt = load_checkpoint(Path(restart), comm)
+        rs.check_restartable(ckpt[2], case)
+    r = GasRun(case, outdir, log, comm, eps=eps, mesh_data=mesh_data, restart=ckpt)
+    s = r.solver
+    start = f"restarted from {r.restarted_from} at t = {s.t:.6g} s" if ckpt else "gas"
     log.info(
-        f"gas: {solver.comm.allreduce(solver.n_owned)} nodes, LES {case.gas.les}, "
-        f"boundaries {', '.join(f'{n}={s.type}' for n, s in solver.bc.specs.items())}"
+        f"{start}: {comm.allreduce(s.n_owned)} nodes, LES {case.gas.les}, "
+        f"boundaries {', '.join(f'{n}={b.type}' for n, b in s.bc.specs.items())}, to t = {case.run.end_time:g} s"
     )
-    writer = FieldWriter(outdir / "fields.xdmf", md.mesh, solver.functions(), md.comm)
-    writer.write(0.0)
-    next_out, n_steps = every, 0
-    wall0 = last = time.perf_counter()
-    while solver.t < end * (1 - 1e-12):
-        dt = solver.compute_dt()
-        stop = min(end, next_out)
-        if solver.t + dt > stop - 1e-9 * dt:  # land exactly on the next output / end time
-            dt = stop - solver.t
-        info = solver.step(dt, eps=eps_at(x, solver.t + dt) if eps is not None else None)
-        n_steps += 1
-        if solver.t >= next_out * (1 - 1e-12):
-            writer.write(solver.t)
-            next_out += every
-        now = time.perf_counter()
-        if now - last >= case.output.progress_interval or solver.t >= end * (1 - 1e-12):
-            last = now
-            log.info(
-                f"t = {solver.t:.5g} s  dt = {dt:.3g} s  CFL {info.cfl:.3f}  Poisson its {info.poisson_iterations}  "
-                f"mass imbalance {info.mass_imbalance:.3g} kg/s (inflow {case.gas.density * info.inflow:.4g} kg/s)  "
-                f"{1e3 * (now - wall0) / n_steps:.1f} ms/step"
-            )
-    writer.close()
-    log.info(f"gas: {n_steps} steps to t = {solver.t:.5g} s; fields in {writer.path}")
-    return solver
+    restore_signals = r.catch_signals()
+    try:
+        r.advance_to(case.run.end_time)
+        r.checkpoint()
+        r.status("finished")
+    finally:
+        restore_signals()
+        r.close()
+    log.info(f"gas: {r.steps} steps to t = {s.t:.5g} s; fields in {r.writer.path}")
+    return s
