@@ -173,12 +173,18 @@ def cmd_run(args) -> int:
 def _restart_target(case, restart: str) -> tuple[Path, Path]:
     """The run folder and checkpoint to continue; refuses case changes a restart cannot take (collective)."""
     from febed.io.checkpoint import FOLDER
-    from febed.io.rundir import RESOLVED_CASE, _header, atomic_write_text
+    from febed.io.rundir import RESOLVED_CASE, _header, atomic_write_text, running_process
     from febed.restart import case_changes, read_resolved
 
     outdir = case.output_dir()
     if not (outdir / RESOLVED_CASE).is_file():
         raise UserError(f"--restart: {outdir} holds no febed run ({RESOLVED_CASE} missing); run without --restart")
+    pid = MPI.COMM_WORLD.bcast(running_process(outdir) if MPI.COMM_WORLD.rank == 0 else None, root=0)
+    if pid is not None:
+        raise UserError(
+            f"--restart: the run in {outdir} is still going (process {pid} on this machine): two runs would write "
+            f"the same files. Stop it first (kill -USR1 {pid} writes a checkpoint), then restart"
+        )
     checkpoint = outdir / FOLDER if restart == "latest" else Path(restart)
     if not checkpoint.exists():
         raise UserError(f"--restart: checkpoint {checkpoint} does not exist")

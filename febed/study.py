@@ -26,8 +26,10 @@ A member's state comes from `<its folder>/status.json` ({"state": "running" | "f
 "interrupted", "time": t, "end_time": T}, written by `febed run`):
 
 * finished -> skipped;
-* running or interrupted -> resumed with `febed run ... --restart` (a run found "running" when the study
-  starts is one that was killed: the study runs its members itself, one at a time);
+* live (status "running" and its process still alive on this machine, e.g. a member submitted as a separate
+  job) -> skipped and reported;
+* running or interrupted -> resumed with `febed run ... --restart` (a run found "running" whose process is
+  gone was killed);
 * failed -> skipped and reported, re-run from scratch with `retry_failed` (`--overwrite`);
 * no folder -> run. A febed folder without status.json (older runs) counts as finished when its probes or
   particle output reach the end time (within min(1e-3 end_time, gas.dt_max)), else as interrupted.
@@ -52,7 +54,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-STATES = ("new", "running", "interrupted", "finished", "failed")
+STATES = ("new", "live", "running", "interrupted", "finished", "failed")
 _STUDY_KEYS = {"base", "name", "directory", "combine", "set", "ranks", "mpirun", "window"}
 
 
@@ -239,7 +241,11 @@ def member_state(m: Member) -> str:
     st = read_status(d)
     if st is not None:
         s = st.get("state")
-        if s in ("running", "interrupted", "finished", "failed"):
+        if s == "running":
+            from febed.io.rundir import running_process
+
+            return "live" if running_process(d) is not None else "running"
+        if s in ("interrupted", "finished", "failed"):
             return s
     from febed.post.rundata import read_case
 
@@ -282,6 +288,9 @@ def run_study(
         if state == "failed" and not retry_failed:
             say(f"study {study.name}: {m.name} failed before, skipped (--retry-failed re-runs it)")
             continue
+        if state == "live":
+            say(f"study {study.name}: {m.name} is still running (another process on this machine), skipped")
+            continue
         restart = state in ("running", "interrupted")
         cmd = m.command(study, restart=restart, overwrite=state == "failed")
         say(f"study {study.name}: {'resuming' if restart else 'running'} {m.name}: {shlex.join(cmd)}")
@@ -297,7 +306,7 @@ def job_lines(study: Study, retry_failed: bool = False) -> list[str]:
     """Shell command lines (one per unfinished member) to submit as separate (MPI) jobs."""
     lines = []
     for m, state in member_states(study):
-        if state == "finished" or (state == "failed" and not retry_failed):
+        if state in ("finished", "live") or (state == "failed" and not retry_failed):
             continue
         lines.append(
             shlex.join(m.command(study, restart=state in ("running", "interrupted"), overwrite=state == "failed"))

@@ -1,5 +1,7 @@
 """The `febed` command line: messages instead of tracebacks, output folders never clobbered."""
 
+import json
+import socket
 import subprocess
 import sys
 
@@ -7,7 +9,7 @@ import pytest
 
 from febed.case import load_case
 from febed.cli import main
-from febed.io.rundir import RESOLVED_CASE, OutputError, prepare_output
+from febed.io.rundir import RESOLVED_CASE, OutputError, prepare_output, running_process, write_status
 from febed.schema import BOUNDARY, SCHEMA
 
 CASE = """
@@ -73,6 +75,39 @@ def test_output_folder_is_never_clobbered(case_file, tmp_path):
     with pytest.raises(OutputError, match="not written by febed"):
         prepare_output(other, overwrite=True)
     assert (user / "thesis.tex").exists()
+
+
+@pytest.fixture
+def other_febed_process():
+    """A live process whose command line names febed (as a running `febed run` would)."""
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "febed"])
+    yield proc
+    proc.kill()
+    proc.wait()
+
+
+def test_a_run_still_going_is_neither_restarted_nor_cleared(case_file, other_febed_process, capsys):
+    case = load_case(case_file)
+    out = prepare_output(case)
+    write_status(out, "running", 0.1, 1.0, 10)
+    info = json.loads((out / "status.json").read_text())
+    assert info["host"] == socket.gethostname() and info["pid"] > 0
+    assert running_process(out) is None  # written by this very process
+    info["pid"] = other_febed_process.pid
+    (out / "status.json").write_text(json.dumps(info))
+    assert running_process(out) == other_febed_process.pid
+    assert main(["run", str(case_file), "--restart"]) == 2
+    assert f"still going (process {other_febed_process.pid} on this machine)" in capsys.readouterr().err
+    with pytest.raises(OutputError, match=f"still going \\(process {other_febed_process.pid}"):
+        prepare_output(case, overwrite=True)
+    assert (out / RESOLVED_CASE).is_file()
+    for change in ({"host": "elsewhere"}, {"state": "interrupted"}, {"pid": 1}):  # another host, stopped, not febed
+        (out / "status.json").write_text(json.dumps({**info, **change}))
+        assert running_process(out) is None, change
+    (out / "status.json").write_text(json.dumps(info))
+    other_febed_process.kill()
+    other_febed_process.wait()
+    assert running_process(out) is None  # killed without a chance to update its status
 
 
 def test_unwritable_output_is_reported(case_file, tmp_path):

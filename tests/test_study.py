@@ -146,6 +146,32 @@ def test_resume_skips_finished_and_restarts_interrupted(study_file):
     assert table.csv.is_file() and any(f.name == "comparison_contact_friction_pp.png" for f in table.figures)
 
 
+def test_a_member_still_running_elsewhere_is_skipped(study_file):
+    import socket
+    import subprocess
+    import sys
+
+    s = load_study(study_file())
+    m = s.members[0]
+    m.directory.mkdir(parents=True)
+    (m.directory / "case.resolved.toml").write_text(BASE)
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "febed"])  # e.g. a separate job
+    try:
+        status = {"state": "running", "time": 0.5, "end_time": 1.0, "host": socket.gethostname(), "pid": proc.pid}
+        (m.directory / "status.json").write_text(json.dumps(status))
+        assert member_state(m) == "live"
+        assert len(job_lines(s)) == 3  # not submitted again
+        said = []
+        runner = FakeRunner()
+        run_study(s, runner=runner, say=said.append)
+        assert m.name not in [name for name, _ in runner.calls]
+        assert f"study {s.name}: {m.name} is still running (another process on this machine), skipped" in said
+    finally:
+        proc.kill()
+        proc.wait()
+    assert member_state(m) == "running"  # its process is gone: resumed by the next study run
+
+
 def test_mpirun_job_lines(study_file):
     s = load_study(study_file(extra='ranks = 2\nmpirun = "mpirun --oversubscribe -n {ranks}"'))
     lines = [shlex.split(line) for line in job_lines(s)]

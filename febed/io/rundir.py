@@ -4,12 +4,14 @@ Layout of an output folder (`[output] directory`, default `./runs/<case name>/`)
 
     case.resolved.toml   the case with every default filled in (what actually ran)
     febed.log            the log (same lines as the console, with time stamps)
-    status.json          running / finished / failed / interrupted, and the simulated time reached
+    status.json          running / finished / failed / interrupted, the simulated time reached, and the host
+                         and process id of the run that wrote it
     mesh/                built-in meshes generated for this run (.msh)
     ...                  fields, particles, probes, checkpoints (written by their modules)
 
 A folder is recognised as febed's by its `case.resolved.toml`. `febed run` refuses an existing non-empty
-folder unless `--overwrite`, and even then refuses to clear a folder that is not febed's.
+folder unless `--overwrite`, and even then refuses to clear a folder that is not febed's or whose run is
+still going on this machine (`running_process`; `febed run --restart` refuses that too).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import socket
 import sys
 import tempfile
 from pathlib import Path
@@ -58,7 +61,34 @@ def write_status(outdir: Path, state: str, time: float, end_time: float, step: i
     info = {"state": state, "time": float(time), "step": int(step), "end_time": float(end_time)}
     if message:
         info["message"] = message
+    info.update(host=socket.gethostname(), pid=os.getpid())  # which process wrote it (`running_process`)
     atomic_write_text(Path(outdir) / STATUS_FILE, json.dumps(info, indent=1) + "\n")
+
+
+def running_process(outdir: Path) -> int | None:
+    """The process id of a febed run still writing `outdir`, if it runs on this machine; else None.
+
+    A folder is being written when its status.json says "running", was written on this host, and its
+    writer's process (rank 0) is alive and a febed process (its command line names febed, so that a reused
+    process id does not count). A run killed without a chance to update its status (kill -9, a node crash)
+    is not alive, and a run on another host cannot be checked: both give None.
+    """
+    import json
+
+    try:
+        info = json.loads((Path(outdir) / STATUS_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    pid = info.get("pid")
+    if info.get("state") != "running" or info.get("host") != socket.gethostname() or not isinstance(pid, int):
+        return None
+    if pid == os.getpid():
+        return None
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return None
+    return pid if b"febed" in cmdline else None
 
 
 def prepare_output(case, overwrite: bool = False, comm=MPI.COMM_WORLD) -> Path:
@@ -90,6 +120,13 @@ def _prepare(out: Path, overwrite: bool) -> None:
             raise OutputError(
                 f"output folder {out} already exists and is not empty; run with --overwrite to replace it "
                 "or set [output] directory (or --set output.directory=...) to another folder"
+            )
+        pid = running_process(out)
+        if pid is not None:
+            raise OutputError(
+                f"output folder {out} belongs to a run that is still going (process {pid} on this machine); "
+                f"refusing to clear it even with --overwrite: stop that run first (kill -USR1 {pid}) or choose "
+                "another [output] directory"
             )
         if not (out / RESOLVED_CASE).is_file():
             raise OutputError(
