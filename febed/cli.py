@@ -28,6 +28,7 @@ from mpi4py import MPI
 from febed.case import CaseError, load_case
 from febed.meshing import GEOMETRIES, PSEUDO2D_LEVELS, MeshError
 from febed.post import cli as post_cli
+from febed.restart import RESTARTABLE
 from febed.schema import BOUNDARY, SCHEMA, describe
 
 # run.mode -> module with `run(case, outdir, log)`; a mode whose module is absent is reported clearly.
@@ -37,8 +38,6 @@ RUNNERS = {
     "cfd-dem": "febed.solver",
     "one-way": "febed.coarse.oneway",
 }
-
-RESTARTABLE = ("cfd-dem", "dem", "gas")  # modes whose runs write checkpoints and continue from them
 
 
 class UserError(Exception):

@@ -55,6 +55,7 @@ CHANGEABLE = (
     "gas.mass_tolerance",
     "gas.backflow",
 )
+RESTARTABLE = ("cfd-dem", "dem", "gas")  # [run] modes whose runs write checkpoints and continue from them
 _ROWS = "p_"  # DEM state keys holding one row per particle
 _HISTORY = ("saved_keys", "saved_vals", "saved_wkeys", "saved_wvals")
 

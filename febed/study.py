@@ -259,6 +259,24 @@ def member_state(m: Member) -> str:
     return "finished" if _last_output_time(d) >= end - tol else "interrupted"
 
 
+def _how_to_resume(m: Member, state: str) -> tuple[bool, bool]:
+    """(restart, overwrite) for a member in `state` (`febed run --restart` / `--overwrite`).
+
+    An unfinished run of a mode without checkpoints (not in `febed.restart.RESTARTABLE`, e.g. one-way) starts
+    again from scratch.
+    """
+    from febed.post.rundata import read_case
+    from febed.restart import RESTARTABLE
+
+    if state not in ("running", "interrupted"):
+        return False, state == "failed"
+    try:
+        mode = read_case(m.directory)["run"].get("mode", "cfd-dem")
+    except (ValueError, KeyError, TypeError, OSError):
+        return True, False
+    return (True, False) if mode in RESTARTABLE else (False, True)
+
+
 def member_states(study: Study) -> list[tuple[Member, str]]:
     """(member, state) of every member, in study order."""
     return [(m, member_state(m)) for m in study.members]
@@ -291,8 +309,8 @@ def run_study(
         if state == "live":
             say(f"study {study.name}: {m.name} is still running (another process on this machine), skipped")
             continue
-        restart = state in ("running", "interrupted")
-        cmd = m.command(study, restart=restart, overwrite=state == "failed")
+        restart, overwrite = _how_to_resume(m, state)
+        cmd = m.command(study, restart=restart, overwrite=overwrite)
         say(f"study {study.name}: {'resuming' if restart else 'running'} {m.name}: {shlex.join(cmd)}")
         rc = runner(cmd, m)
         if rc != 0:
@@ -308,9 +326,8 @@ def job_lines(study: Study, retry_failed: bool = False) -> list[str]:
     for m, state in member_states(study):
         if state in ("finished", "live") or (state == "failed" and not retry_failed):
             continue
-        lines.append(
-            shlex.join(m.command(study, restart=state in ("running", "interrupted"), overwrite=state == "failed"))
-        )
+        restart, overwrite = _how_to_resume(m, state)
+        lines.append(shlex.join(m.command(study, restart=restart, overwrite=overwrite)))
     return lines
 
 

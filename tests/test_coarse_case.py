@@ -1,6 +1,10 @@
 """Coarse-graining and one-way runs from case files (issue 8): what is inserted, checks, a coupled PCPM run."""
 
+import json
 import math
+import re
+import sys
+import types
 
 import numpy as np
 import pytest
@@ -134,9 +138,27 @@ velocity = [0.1, 0.0, 0.0]
 output_interval = 0.002
 """
     )
-    assert main(["run", str(toml), "--set", f"output.directory={tmp_path / 'out'}"]) == 0
-    data = np.loadtxt(tmp_path / "out" / "particles.csv", delimiter=",", skiprows=1, ndmin=2)
+    out = tmp_path / "out"
+    assert main(["run", str(toml), "--set", f"output.directory={out}", "--set", "output.progress_interval=1e-9"]) == 0
+    data = np.loadtxt(out / "particles.csv", delimiter=",", skiprows=1, ndmin=2)
     t, vx = data[:, 0], data[:, 5]
     tau = 2500.0 * 5e-5**2 / (18 * 1.8e-5)
     assert t[-1] == pytest.approx(0.02, rel=1e-6) and t.size >= 10
     np.testing.assert_allclose(vx, 0.1 * (1 - np.exp(-t / tau)), rtol=1e-6, atol=1e-9)
+    assert json.loads((out / "status.json").read_text())["state"] == "finished"
+    log = (out / "febed.log").read_text()
+    assert re.search(
+        r"t = 0.02 / 0.02 s  \d+ drag windows  1 particles  0 removed  .* min wall per simulated s  ETA", log
+    )
+    # a gas velocity that turns into NaN stops the run with the particle and time named, status failed
+    mod = types.ModuleType("febed_test_nan_flow")
+    mod.flow = lambda x, t: np.full(x.shape, np.nan if t > 0.01 else 0.1)
+    sys.modules["febed_test_nan_flow"] = mod
+    flow = ["--set", "prescribed_gas.flow=function", "--set", "prescribed_gas.function=febed_test_nan_flow:flow"]
+    assert main(["run", str(toml), "--set", f"output.directory={out}", "--overwrite", *flow]) == 3
+    status = json.loads((out / "status.json").read_text())
+    assert status["state"] == "failed"
+    # found by the run's check at an output or by the DEM at its next pair-list rebuild, whichever comes first
+    assert re.search(r"particle 0 (at \[nan nan nan\] m )?has a non-finite position", status["message"])
+    rows = np.loadtxt(out / "particles.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert rows[-1, 0] == pytest.approx(0.01, abs=2.1e-3) and np.isfinite(rows).all()  # the rows up to the failure

@@ -106,13 +106,14 @@ class OneWay:
 
 @dataclass
 class OneWayCase:
-    """Plain parameters of a one-way run until `[run] mode = "one-way"` is in the schema (see the report).
+    """The parameters of a one-way run (`case_settings` reads them from a case with `[run] mode = "one-way"`).
 
     Attributes:
         flow: prescribed flow name (uniform | vortex | function); flow_params: its keyword parameters.
         drag: registered drag law; density, viscosity: gas ρ_g (kg/m^3), μ_g (Pa s).
         end_time: s; window: drag window h (s, 0 = auto); drag_factor: auto h = τ_min / drag_factor.
         integration: exponential | explicit; output_interval: s between particle CSV rows.
+        progress_interval: wall-clock s between progress lines.
     """
 
     flow: str = "uniform"
@@ -125,33 +126,73 @@ class OneWayCase:
     drag_factor: float = 20.0
     integration: str = "exponential"
     output_interval: float = 0.01
+    progress_interval: float = 10.0
+
+
+def _first_bad(P) -> int | None:
+    """Row of the first owned particle whose position or velocity is not finite, or None."""
+    n = P.n_owned
+    ok = np.isfinite(P.pos[:n]).all(axis=1) & np.isfinite(P.vel[:n]).all(axis=1)
+    return None if ok.all() else int(np.flatnonzero(~ok)[0])
 
 
 def run_oneway(case: OneWayCase, outdir, log=None, dem=None, sink=None) -> OneWay:
-    """Run `dem` in the prescribed gas of `case` to its end time; writes outdir/particles.csv (t, gid, x, v)."""
+    """Run `dem` in the prescribed gas of `case` to its end time, writing outdir/particles.csv (t, gid, x, v).
+
+    The rows of each output time are appended and flushed as they come (a run stopped midway keeps them);
+    with `log`, a progress line (simulated time, drag windows, particles, wall time per simulated second,
+    ETA) every `progress_interval` wall seconds. A particle whose position or velocity is no longer finite
+    stops the run (`febed.solver.RunFailure`, naming the particle and the time).
+    """
+    from febed.io.progress import Progress, clock
+
     if dem is None:
-        raise ValueError("dem: build the particles (DEM) first; the case-file path is wired by the lead")
+        raise ValueError("dem: build the particles (a DEM) first, e.g. `febed.dem.driver.build_dem`")
     gas = make_prescribed_gas(case.flow, case.density, case.viscosity, **case.flow_params)
     ow = OneWay(dem, gas, case.drag, case.integration, case.drag_factor, sink)
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
-    rows = []
     next_out = [0.0]
+    display = Progress(log, 0) if log is not None else None
+    t0 = last = time.perf_counter()
 
-    def record(o: OneWay) -> None:
-        if o.t + 1e-12 >= next_out[0]:
+    with open(out / "particles.csv", "w") as csv:
+        csv.write("t,gid,x,y,z,vx,vy,vz\n")
+
+        def record(o: OneWay) -> None:
+            nonlocal last
             P = o.dem.particles
-            n = P.n_owned
-            blk = np.column_stack([np.full(n, o.t), P.gid[:n], P.pos[:n], P.vel[:n]])
-            rows.append(blk)
-            next_out[0] += case.output_interval
+            if o.t + 1e-12 >= next_out[0]:
+                bad = _first_bad(P)
+                if bad is not None:
+                    from febed.solver import RunFailure
 
-    t0 = time.perf_counter()
-    record(ow)
-    ow.advance(case.end_time, case.window if case.window > 0 else None, record)
+                    raise RunFailure(
+                        f"particle {int(P.gid[bad])} has a non-finite position or velocity at t = {o.t:.6g} s "
+                        f"(drag window {o.windows}); lower [prescribed_gas] window or raise drag_factor"
+                    )
+                n = P.n_owned
+                blk = np.column_stack([np.full(n, o.t), P.gid[:n], P.pos[:n], P.vel[:n]])
+                np.savetxt(csv, blk, delimiter=",")
+                csv.flush()
+                next_out[0] += case.output_interval
+            now = time.perf_counter()
+            if display is not None and (now - last >= case.progress_interval or o.t >= case.end_time * (1 - 1e-12)):
+                last = now
+                rate = (now - t0) / o.t if o.t > 0 else math.nan
+                display.show(
+                    f"t = {o.t:.5g} / {case.end_time:g} s  {o.windows} drag windows  {P.n_owned} particles  "
+                    f"{o.removed} removed  {rate / 60:.3g} min wall per simulated s  "
+                    f"ETA {clock(rate * (case.end_time - o.t))}"
+                )
+
+        try:
+            record(ow)
+            ow.advance(case.end_time, case.window if case.window > 0 else None, record)
+        finally:
+            if display is not None:
+                display.end()
     wall = time.perf_counter() - t0
-    data = np.concatenate(rows) if rows else np.zeros((0, 8))
-    np.savetxt(out / "particles.csv", data, delimiter=",", header="t,gid,x,y,z,vx,vy,vz", comments="")
     if log is not None:
         log.info(f"one-way run: {ow.windows} drag windows to t = {ow.t:.6g} s in {wall:.3g} s; removed {ow.removed}")
     return ow
@@ -177,6 +218,7 @@ def case_settings(case) -> OneWayCase:
         flow=g.flow, flow_params=flow_params, drag=case.coupling.drag, density=case.gas.density,
         viscosity=case.gas.viscosity, end_time=case.run.end_time, window=g.window, drag_factor=g.drag_factor,
         integration=g.integration, output_interval=g.output_interval,
+        progress_interval=case.output.progress_interval,
     )  # fmt: skip
 
 
@@ -184,12 +226,17 @@ def run(case, outdir, log, comm=None) -> OneWay:
     """`[run] mode = "one-way"`: the case's particles (walls and bed from its mesh) in its prescribed gas.
 
     Particles whose centre leaves the mesh's bounding box (an open outlet) are removed and counted.
-    Writes outdir/particles.csv (t, gid, x, v every `output_interval`). One process.
+    Writes outdir/particles.csv (t, gid, x, v every `output_interval`) and keeps `status.json` (running,
+    finished, failed with the message); shows progress like the other modes. One process; no checkpoints
+    (one-way runs are short: they are re-run rather than restarted).
     """
     from mpi4py import MPI
 
     from febed.dem.driver import build_dem
+    from febed.dem.solver import DEMFailure
+    from febed.io.rundir import write_status
     from febed.meshing import load_case_mesh
+    from febed.solver import RunFailure
 
     comm = comm or MPI.COMM_WORLD
     if comm.size > 1:
@@ -204,4 +251,17 @@ def run(case, outdir, log, comm=None) -> OneWay:
         return np.any((pos < lo) | (pos > hi), axis=1)
 
     log.info(f"one-way: {dem.particles.n_owned} particles in a prescribed {settings.flow} gas, drag {settings.drag}")
-    return run_oneway(settings, outdir, log, dem=dem, sink=outside)
+    end = settings.end_time
+    write_status(outdir, "running", 0.0, end, 0, comm=comm)
+    try:
+        ow = run_oneway(settings, outdir, log, dem=dem, sink=outside)
+    except (RunFailure, DEMFailure) as e:  # DEMFailure: found by the DEM itself at a pair-list rebuild
+        write_status(outdir, "failed", dem.time, end, dem.steps, str(e), comm=comm)
+        log.error(f"run failed: {e}")
+        raise
+    except KeyboardInterrupt:  # not "interrupted": a one-way run has no checkpoint to continue from
+        msg = "stopped by Ctrl-C; a one-way run does not restart: run it again with --overwrite"
+        write_status(outdir, "failed", dem.time, end, dem.steps, msg, comm=comm)
+        raise
+    write_status(outdir, "finished", ow.t, end, ow.windows, comm=comm)
+    return ow

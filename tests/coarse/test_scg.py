@@ -97,5 +97,12 @@ def test_vortex_field_and_user_function(tmp_path):
                                output_interval=0.05), tmp_path, dem=dem)  # fmt: skip
     data = np.loadtxt(tmp_path / "particles.csv", delimiter=",", skiprows=1)
     assert data.shape[0] == 3 and ow.t == pytest.approx(0.1)
+    bad = DEM(DEMParams(kn=1.0, gravity=0.0))
+    bad.add_particles(np.array([[0.0, 0.5, 0.0], [0.0, 0.6, 0.0]]), 1e-4, 1000.0)
+    bad.particles.vel[1, 0] = np.nan
+    from febed.solver import RunFailure
+
+    with pytest.raises(RunFailure, match="particle 1 has a non-finite position or velocity at t = 0 s"):
+        run_oneway(OneWayCase(end_time=0.1), tmp_path / "bad", dem=bad)
     tau = 1000 * 1e-8 / (18 * MU)
     assert data[-1, 5] == pytest.approx(0.5 * (1 - math.exp(-0.1 / tau)), rel=1e-9)
