@@ -69,6 +69,31 @@ def agree(comm, sig: int, *due: bool) -> tuple:
     return (int(flags[0]), *(bool(f) for f in flags[1:]))
 
 
+def after_step(run, t: float, checkpoint_due: bool) -> bool:
+    """The end of a step of any run (coupled, pure DEM, gas only): returns whether a progress line is due.
+
+    Agrees with the other ranks on a stop signal and on the wall-clock triggers (`agree`: rank 0's clock), writes
+    a checkpoint when one is due (a signal, `[output] checkpoint_wall_interval`, or `checkpoint_due`: the
+    simulated-time interval), and after a signal ends the progress line, sets the status to interrupted and
+    raises `Interrupted`. `run` has comm, case, display, `_signal`, `_last_checkpoint`, `_last_progress`,
+    `checkpoint()` and `status()` (collective).
+    """
+    o = run.case.output
+    now = time.perf_counter()
+    sig, wall_due, show = agree(
+        run.comm, run._signal, now - run._last_checkpoint >= o.checkpoint_wall_interval,
+        now - run._last_progress >= o.progress_interval,
+    )  # fmt: skip
+    if sig or wall_due or checkpoint_due:
+        run.checkpoint()
+    if sig:
+        name = signal.Signals(sig).name
+        run.display.end()
+        run.status("interrupted", f"stopped by {name}")
+        raise Interrupted(sig, f"stopped by {name} at t = {t:.6g} s after a checkpoint; continue with --restart")
+    return show
+
+
 class Interrupted(Exception):
     """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
 
@@ -327,20 +352,9 @@ class CoupledRun:
         s = self.solver
         write_status(self.outdir, state, s.t, self.case.run.end_time, s.steps, message, self.comm)
 
-    def _requests(self) -> tuple[int, bool, bool]:
-        """(signal received, wall-clock checkpoint due, progress line due), agreed by all ranks (collective).
-
-        Both wall-clock decisions are rank 0's: the ranks' clocks disagree, and each decision leads to
-        collective calls (a checkpoint; the particle count of the progress line), which every rank must make.
-        """
-        now = time.perf_counter()
-        wall_due = now - self._last_checkpoint >= self.case.output.checkpoint_wall_interval
-        show = now - self._last_progress >= self.case.output.progress_interval
-        return agree(self.comm, self._signal, wall_due, show)
-
     # ---------------------------------------------------------------------------------------- loop
     def progress(self, end: float) -> None:
-        """Show the progress line (collective under MPI: call it on every rank, `_requests` says when)."""
+        """Show the progress line (collective under MPI: call it on every rank, `after_step` says when)."""
         now = time.perf_counter()
         self._last_progress = now
         s = self.solver
@@ -383,17 +397,7 @@ class CoupledRun:
                 self.fail(err, collective=not self.broken)
                 raise err from e
             self.output()
-            sig, wall_due, show = self._requests()
-            if sig or wall_due or s.t >= self.next["checkpoint"] - 1e-12 * end:
-                self.checkpoint()
-            if sig:
-                name = signal.Signals(sig).name
-                self.display.end()
-                self.status("interrupted", f"stopped by {name}")
-                raise Interrupted(
-                    sig, f"stopped by {name} at t = {s.t:.6g} s after a checkpoint; continue with --restart"
-                )
-            if show:
+            if after_step(self, s.t, s.t >= self.next["checkpoint"] - 1e-12 * end):
                 self.progress(end)
         self.progress(end)
         self.display.end()

@@ -323,7 +323,7 @@ class DEMRun:
 
         Raises DEMFailure (after writing the last good state) or `febed.run.Interrupted` (after a checkpoint).
         """
-        from febed.run import Interrupted, agree
+        from febed.run import after_step
 
         dem = self.dem
         dt = dem.dt
@@ -350,23 +350,7 @@ class DEMRun:
             if dem.time >= self.next_out - 0.5 * dt:
                 self.next_out += o.particle_interval
                 self.output()
-            now = time.perf_counter()
-            sig, wall_due, show = agree(
-                self.comm, self._signal, now - self._last_checkpoint >= o.checkpoint_wall_interval,
-                now - self._last_progress >= o.progress_interval,
-            )  # fmt: skip
-            if sig or wall_due or dem.time >= self.next_ckpt - 0.5 * dt:
-                self.checkpoint()
-            if sig:
-                import signal
-
-                name = signal.Signals(sig).name
-                self.display.end()
-                self.status("interrupted", f"stopped by {name}")
-                raise Interrupted(
-                    sig, f"stopped by {name} at t = {dem.time:.6g} s after a checkpoint; continue with --restart"
-                )
-            if show:
+            if after_step(self, dem.time, dem.time >= self.next_ckpt - 0.5 * dt):
                 self.progress(end)
         self.progress(end)
         self.display.end()

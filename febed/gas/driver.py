@@ -135,7 +135,7 @@ class GasRun:
 
         Raises RunFailure (after writing the last good state) or `febed.run.Interrupted` (after a checkpoint).
         """
-        from febed.run import Interrupted, agree
+        from febed.run import after_step
         from febed.solver import RunFailure
 
         s = self.solver
@@ -167,24 +167,9 @@ class GasRun:
             if wrote:
                 self.writer.write(s.t)
                 self.next_out += o.field_interval
-            now = time.perf_counter()
-            sig, wall_due, show = agree(
-                self.comm, self._signal, now - self._last_checkpoint >= o.checkpoint_wall_interval,
-                now - self._last_progress >= o.progress_interval,
-            )  # fmt: skip
+            show = after_step(self, s.t, s.t >= self.next_ckpt - 1e-12 * end)
             if wrote or show or self.steps % GOOD_EVERY == 0:
                 self.good = self.capture()
-            if sig or wall_due or s.t >= self.next_ckpt - 1e-12 * end:
-                self.checkpoint()
-            if sig:
-                import signal
-
-                name = signal.Signals(sig).name
-                self.display.end()
-                self.status("interrupted", f"stopped by {name}")
-                raise Interrupted(
-                    sig, f"stopped by {name} at t = {s.t:.6g} s after a checkpoint; continue with --restart"
-                )
             if show:
                 self.progress(end)
         self.progress(end)
