@@ -94,6 +94,22 @@ def after_step(run, t: float, checkpoint_due: bool) -> bool:
     return show
 
 
+def run_to_end(run, end: float) -> None:
+    """Advance `run` (coupled, pure DEM or gas only) to `end`, then write the final checkpoint and status.
+
+    The stop signals are caught meanwhile; the handlers are restored and the run's files closed even on a
+    failure or a stop (collective).
+    """
+    restore_signals = run.catch_signals()
+    try:
+        run.advance_to(end)
+        run.checkpoint()
+        run.status("finished")
+    finally:
+        restore_signals()
+        run.close()
+
+
 class Interrupted(Exception):
     """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
 
@@ -468,14 +484,7 @@ def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
         f"{start}: {comm.allreduce(s.dem.particles.n_owned)} particles, {s.ma.num_dofs} nodes, "
         f"drag {case.coupling.drag}, DEM step {s.dem.dt:.3e} s, to t = {case.run.end_time:g} s"
     )
-    restore_signals = run.catch_signals()
-    try:
-        run.advance_to(case.run.end_time)
-        run.checkpoint()
-        run.status("finished")
-    finally:
-        restore_signals()
-        run.close()
+    run_to_end(run, case.run.end_time)
     t = s.timers
     total = t.dem + t.coupling + t.gas + t.output
     log.info(

@@ -380,6 +380,9 @@ class DEMRun:
         self.status("failed", f"{message}{where}")
         self.log.error(f"run failed: {message}{where}")
 
+    def close(self) -> None:
+        """Nothing to close: every particle output is a complete file of its own."""
+
     def catch_signals(self):
         """Handle `febed.run.STOP_SIGNALS` by stopping after the current chunk of steps; returns the restorer."""
         from febed.run import catch_stop_signals
@@ -397,6 +400,7 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD, restart=None) -> DEM:
     """
     from febed import restart as rs
     from febed.io.checkpoint import load_checkpoint
+    from febed.run import run_to_end
 
     ckpt = None
     if restart is not None:
@@ -410,13 +414,7 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD, restart=None) -> DEM:
              f"(T_C/{dem.params.dt_factor:g}), {dem.params.integrator}, law {dem.params.contact_model}, "
              f"to t = {end:g} s")  # fmt: skip
     wall0 = time.time()
-    restore_signals = r.catch_signals()
-    try:
-        r.advance_to(end)
-        r.checkpoint()
-        r.status("finished")
-    finally:
-        restore_signals()
+    run_to_end(r, end)
     left = comm.allreduce(r.left)
     log.info(
         f"DEM done: t = {dem.time:.5f} s, {dem.steps} steps in {time.time() - wall0:.1f} s; "

@@ -228,6 +228,7 @@ def run(case, outdir, log: logging.Logger | None = None, eps=None, mesh_data=Non
     `restart`: a checkpoint file or (run) folder to continue from (its newest valid checkpoint).
     """
     from febed.io.checkpoint import load_checkpoint
+    from febed.run import run_to_end
 
     log = log or logging.getLogger("febed")
     comm = MPI.COMM_WORLD
@@ -242,13 +243,6 @@ def run(case, outdir, log: logging.Logger | None = None, eps=None, mesh_data=Non
         f"{start}: {comm.allreduce(s.n_owned)} nodes, LES {case.gas.les}, "
         f"boundaries {', '.join(f'{n}={b.type}' for n, b in s.bc.specs.items())}, to t = {case.run.end_time:g} s"
     )
-    restore_signals = r.catch_signals()
-    try:
-        r.advance_to(case.run.end_time)
-        r.checkpoint()
-        r.status("finished")
-    finally:
-        restore_signals()
-        r.close()
+    run_to_end(r, case.run.end_time)
     log.info(f"gas: {r.steps} steps to t = {s.t:.5g} s; fields in {r.writer.path}")
     return s
