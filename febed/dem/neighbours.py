@@ -287,7 +287,7 @@ def key_table(keys):
     """Open-addressing hash table (linear probing, load <= 1/2) of unique int64 `keys`: (slot keys, slot rows).
 
     A lookup costs about one cache miss instead of a binary search's log2(len(keys)) dependent ones: the
-    history restore of a parallel rebuild looks up every pair of the new list.
+    history restore of a parallel rebuild finds the rows of every saved pair's two gids with it.
     """
     size = 2
     while size < 2 * keys.size:
@@ -305,32 +305,46 @@ def key_table(keys):
 
 
 @njit(cache=True)
+def _lookup(tkeys, trows, mask, key):
+    """Row stored for `key` in a `key_table`, or -1."""
+    h = _key_slot(key, mask)
+    while tkeys[h] >= 0:
+        if tkeys[h] == key:
+            return trows[h]
+        h = (h + 1) & mask
+    return -1
+
+
+@njit(cache=True)
 def restore_history(start, nbr, gid, n, keys, vals, hist):
-    """Set hist of the new pair list from canonical (keys, vals); pairs not found get zero history."""
-    tkeys, trows = key_table(keys)
+    """Set hist of the new pair list from canonical (keys, vals); pairs not found get zero history.
+
+    Walks the saved pairs, not the list: each key's two gids are found among the rows (a hash table of the
+    rows' gids), then the pair in the partners of either row (a few entries). In a dense bed only ~7 % of
+    the listed pairs are in contact: 2.9 -> ~1 ms for 142,000 listed and 9,700 saved pairs.
+    """
+    for k in range(start[n]):
+        for a in range(3):
+            hist[k, a] = 0.0
+    if keys.size == 0 or n == 0:
+        return
+    tkeys, trows = key_table(gid[:n])  # gids are unique over the rows (owned and ghost)
     mask = np.int64(tkeys.size - 1)
-    for i in range(n):
-        for k in range(start[i], start[i + 1]):
-            gi = gid[i]
-            gj = gid[nbr[k]]
-            s = 1.0
-            if gi > gj:
-                gi, gj = gj, gi
-                s = -1.0
-            key = (gi << 31) | gj
-            h = _key_slot(key, mask)
-            q = -1
-            while tkeys[h] >= 0:
-                if tkeys[h] == key:
-                    q = trows[h]
-                    break
-                h = (h + 1) & mask
-            if q >= 0:
+    for q in range(keys.size):
+        ga = keys[q] >> 31  # the smaller gid: the history is oriented from ga to gb
+        gb = keys[q] & 2147483647
+        ra = _lookup(tkeys, trows, mask, ga)
+        rb = _lookup(tkeys, trows, mask, gb)
+        if ra < 0 or rb < 0:
+            continue
+        for k in range(start[ra], start[ra + 1]):
+            if nbr[k] == rb:
                 for a in range(3):
-                    hist[k, a] = s * vals[q, a]
-            else:
+                    hist[k, a] = vals[q, a]
+        for k in range(start[rb], start[rb + 1]):
+            if nbr[k] == ra:
                 for a in range(3):
-                    hist[k, a] = 0.0
+                    hist[k, a] = -vals[q, a]
 
 
 class PairList:
