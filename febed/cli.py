@@ -4,6 +4,7 @@
     febed run CASE.toml --restart [CHECKPOINT]                        continue a run from its newest checkpoint
     febed check CASE.toml [--set ...]                                 validate a case and its mesh, run nothing
     febed params [SECTION]                                            every parameter: default, unit, help
+    febed status RUN_DIR [...]                                        state, progress, newest checkpoint of runs
     febed mesh NAME [--level L] [--cell C] [--size H] [--extent ...] -o FILE.msh   build a built-in mesh
     febed post RUN_DIR [--window T0 T1] ...                            time-averaged fields, profiles, series
     febed study STUDY.toml [--list | --jobs FILE]                      run / resume / compare a case family
@@ -87,6 +88,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--size", type=float, default=0.005, help="cell size of unstructured meshes [m]")
     m.add_argument("--extent", type=float, nargs="+", help="box: its lengths lx ly [lz] [m]")
     m.add_argument("-o", "--output", required=True, help="output file (.msh)")
+    st = sub.add_parser("status", help="state, progress and newest checkpoint of run folders")
+    st.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="output folder(s) of febed runs")
     post_cli.add_post_parser(sub)
     post_cli.add_study_parser(sub)
     return p
@@ -107,6 +110,16 @@ def cmd_params(args) -> int:
             print("  " + describe(sec, key, par))
         print()
     return 0
+
+
+def cmd_status(args) -> int:
+    """Describe run folders (`febed.io.rundir.describe_run`); status 2 if one is not a febed run folder."""
+    from febed.io.rundir import RESOLVED_CASE, describe_run
+
+    for d in args.run_dirs:
+        _say(describe_run(Path(d)))
+    missing = [d for d in args.run_dirs if not (Path(d) / RESOLVED_CASE).is_file()]
+    return 2 if missing else 0
 
 
 def cmd_check(args) -> int:
@@ -217,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         "check": cmd_check,
         "params": cmd_params,
         "mesh": cmd_mesh,
+        "status": cmd_status,
         "post": post_cli.cmd_post,
         "study": post_cli.cmd_study,
     }

@@ -75,8 +75,9 @@ def after_step(run, t: float, checkpoint_due: bool) -> bool:
     Agrees with the other ranks on a stop signal and on the wall-clock triggers (`agree`: rank 0's clock), writes
     a checkpoint when one is due (a signal, `[output] checkpoint_wall_interval`, or `checkpoint_due`: the
     simulated-time interval), and after a signal ends the progress line, sets the status to interrupted and
-    raises `Interrupted`. `run` has comm, case, display, `_signal`, `_last_checkpoint`, `_last_progress`,
-    `checkpoint()` and `status()` (collective).
+    raises `Interrupted`. When a progress line is due, status.json is rewritten with the current time. `run`
+    has comm, case, display, `_signal`, `_last_checkpoint`, `_last_progress`, `checkpoint()` and `status()`
+    (collective).
     """
     o = run.case.output
     now = time.perf_counter()
@@ -86,6 +87,8 @@ def after_step(run, t: float, checkpoint_due: bool) -> bool:
     )  # fmt: skip
     if sig or wall_due or checkpoint_due:
         run.checkpoint()
+    if show and not sig:
+        run.status("running")  # status.json follows the progress line: its time and step are recent
     if sig:
         name = signal.Signals(sig).name
         run.display.end()

@@ -5,6 +5,7 @@ import socket
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from febed.case import load_case
@@ -108,6 +109,38 @@ def test_a_run_still_going_is_neither_restarted_nor_cleared(case_file, other_feb
     other_febed_process.kill()
     other_febed_process.wait()
     assert running_process(out) is None  # killed without a chance to update its status
+
+
+def test_status_reports_state_liveness_progress_and_checkpoint(case_file, other_febed_process, capsys):
+    from febed.io.checkpoint import write_checkpoint
+
+    case = load_case(case_file)
+    out = prepare_output(case)
+    write_status(out, "running", 0.25, 1.0, 40)
+    info = {**json.loads((out / "status.json").read_text()), "pid": other_febed_process.pid}
+    (out / "status.json").write_text(json.dumps(info))
+    (out / "febed.log").write_text(
+        "2026-12-02 06:00:00,001 INFO febed: case x\n"
+        "2026-12-02 06:00:10,002 INFO t = 0.25000 / 1 s  step 40  10 particles  2.00 min wall per simulated s  "
+        "ETA 0h01m30s\n"
+        "2026-12-02 06:00:11,003 INFO checkpoint at t = 0.25 s (gas step 40): x\n"
+    )  # fmt: skip
+    write_checkpoint(out / "checkpoints", {"a": np.zeros(2)}, {"step": 40, "time": 0.25}, keep=2)
+    assert main(["status", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"{out}: running (process {other_febed_process.pid} on this machine)" in text
+    assert "status.json: t = 0.25 / 1 s, step 40" in text
+    assert "last progress line (2026-12-02 06:00:10): t = 0.25000 / 1 s  step 40" in text and "ETA 0h01m30s" in text
+    assert "newest checkpoint: checkpoints/checkpoint_000000040.npz (t = 0.25 s)" in text
+    other_febed_process.kill()
+    other_febed_process.wait()
+    assert main(["status", str(out), str(out.parent)]) == 2  # the second is no run folder
+    text = capsys.readouterr().out
+    assert "its process is gone (killed?): continue it with --restart" in text
+    assert f"{out.parent}: not a febed run folder" in text
+    write_status(out, "failed", 0.3, 1.0, 45, "gas pressure p is not finite")
+    main(["status", str(out)])
+    assert "failed\n" in (text := capsys.readouterr().out) and "message: gas pressure p is not finite" in text
 
 
 def test_unwritable_output_is_reported(case_file, tmp_path):

@@ -105,6 +105,16 @@ def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, meta
 
 
+def read_meta(path: Path) -> dict:
+    """The meta record of one checkpoint alone (its arrays are not read); CheckpointError if there is none."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["__meta__"]))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as e:
+        raise CheckpointError(f"{path} is not a readable checkpoint ({e})") from None
+    return meta
+
+
 def latest_valid(folder: Path) -> Path | None:
     """The newest checkpoint in `folder` that reads completely, or None."""
     for path in reversed(list_checkpoints(folder)):

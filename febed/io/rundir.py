@@ -177,3 +177,65 @@ def get_logger(outdir: Path | None = None, comm=MPI.COMM_WORLD, verbose: bool = 
         fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(fh)
     return log
+
+
+def _last_progress(outdir: Path) -> tuple[str, str] | None:
+    """(time stamp, text) of the last progress line in the run's log (its last 64 kB), or None."""
+    import re
+
+    try:
+        with open(Path(outdir) / LOG_FILE, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            f.seek(max(0, f.tell() - 65536))
+            lines = f.read().decode(errors="replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(lines):
+        m = re.match(r"^(\S+ \S+) INFO (t = \S+ / \S+ s .*)$", line)
+        if m:
+            return m.group(1).split(",")[0], m.group(2)
+    return None
+
+
+def describe_run(outdir: Path) -> str:
+    """A few lines on a run folder: its state (and whether its process is alive), progress, newest checkpoint."""
+    import json
+
+    from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta
+
+    outdir = Path(outdir)
+    if not (outdir / RESOLVED_CASE).is_file():
+        return f"{outdir}: not a febed run folder (no {RESOLVED_CASE})"
+    try:
+        info = json.loads((outdir / STATUS_FILE).read_text())
+    except (OSError, ValueError):
+        info = {}
+    state = info.get("state", "unknown (no status.json)")
+    head = f"{outdir}: {state}"
+    if state == "running":
+        pid = running_process(outdir)
+        if pid is not None:
+            head += f" (process {pid} on this machine)"
+        elif "pid" not in info:
+            head += " (written by a febed before session 10: whether its process is alive is not known)"
+        elif info.get("host") != socket.gethostname():
+            head += f" on {info['host']} (cannot check from here)"
+        else:
+            head += " according to status.json, but its process is gone (killed?): continue it with --restart"
+    lines = [head]
+    if "time" in info:
+        end = info.get("end_time", float("nan"))
+        lines.append(f"  status.json: t = {info['time']:.6g} / {end:g} s, step {info.get('step', '?')}")
+    if info.get("message"):
+        lines.append(f"  message: {info['message']}")
+    progress = _last_progress(outdir)
+    if progress is not None:
+        lines.append(f"  last progress line ({progress[0]}): {progress[1]}")
+    ckpts = list_checkpoints(outdir / FOLDER)
+    if ckpts:
+        try:
+            when = f" (t = {read_meta(ckpts[-1])['time']:.6g} s)"
+        except CheckpointError:
+            when = " (unreadable: --restart takes the newest readable one)"
+        lines.append(f"  newest checkpoint: {ckpts[-1].relative_to(outdir)}{when}")
+    return "\n".join(lines)
