@@ -259,7 +259,7 @@ def member_state(m: Member) -> str:
     return "finished" if _last_output_time(d) >= end - tol else "interrupted"
 
 
-def _how_to_resume(m: Member, state: str) -> tuple[bool, bool]:
+def resume_flags(m: Member, state: str) -> tuple[bool, bool]:
     """(restart, overwrite) for a member in `state` (`febed run --restart` / `--overwrite`).
 
     An unfinished run of a mode without checkpoints (not in `febed.restart.RESTARTABLE`, e.g. one-way) starts
@@ -309,7 +309,7 @@ def run_study(
         if state == "live":
             say(f"study {study.name}: {m.name} is still running (another process on this machine), skipped")
             continue
-        restart, overwrite = _how_to_resume(m, state)
+        restart, overwrite = resume_flags(m, state)
         cmd = m.command(study, restart=restart, overwrite=overwrite)
         say(f"study {study.name}: {'resuming' if restart else 'running'} {m.name}: {shlex.join(cmd)}")
         rc = runner(cmd, m)
@@ -326,7 +326,7 @@ def job_lines(study: Study, retry_failed: bool = False) -> list[str]:
     for m, state in member_states(study):
         if state in ("finished", "live") or (state == "failed" and not retry_failed):
             continue
-        restart, overwrite = _how_to_resume(m, state)
+        restart, overwrite = resume_flags(m, state)
         lines.append(shlex.join(m.command(study, restart=restart, overwrite=overwrite)))
     return lines
 

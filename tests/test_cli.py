@@ -81,7 +81,9 @@ def test_output_folder_is_never_clobbered(case_file, tmp_path):
 @pytest.fixture
 def other_febed_process():
     """A live process whose command line names febed (as a running `febed run` would)."""
-    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "febed"])
+    from _febed_process import sleeping_febed_process
+
+    proc = sleeping_febed_process()
     yield proc
     proc.kill()
     proc.wait()

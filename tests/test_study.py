@@ -148,14 +148,14 @@ def test_resume_skips_finished_and_restarts_interrupted(study_file):
 
 def test_a_member_still_running_elsewhere_is_skipped(study_file):
     import socket
-    import subprocess
-    import sys
+
+    from _febed_process import sleeping_febed_process
 
     s = load_study(study_file())
     m = s.members[0]
     m.directory.mkdir(parents=True)
     (m.directory / "case.resolved.toml").write_text(BASE)
-    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "febed"])  # e.g. a separate job
+    proc = sleeping_febed_process()  # e.g. a member submitted as a separate job
     try:
         status = {"state": "running", "time": 0.5, "end_time": 1.0, "host": socket.gethostname(), "pid": proc.pid}
         (m.directory / "status.json").write_text(json.dumps(status))
@@ -172,7 +172,7 @@ def test_a_member_still_running_elsewhere_is_skipped(study_file):
     assert member_state(m) == "running"  # its process is gone: resumed by the next study run
 
 
-def test_an_unfinished_run_without_checkpoints_starts_again(study_file):
+def test_an_unfinished_run_without_checkpoints_starts_again(study_file, capsys):
     s = load_study(study_file())
     m = s.members[0]
     m.directory.mkdir(parents=True)
@@ -180,6 +180,9 @@ def test_an_unfinished_run_without_checkpoints_starts_again(study_file):
     (m.directory / "status.json").write_text('{"state": "interrupted", "time": 0.005, "end_time": 0.01}')
     cmd = shlex.split(job_lines(s)[0])
     assert "--overwrite" in cmd and "--restart" not in cmd
+    assert post_main(["study", str(s.path), "--list"]) == 0  # --list shows the same command lines
+    line = capsys.readouterr().out.splitlines()[0]
+    assert line.startswith(m.name) and " interrupted " in line and line.endswith("--overwrite")
     (m.directory / "case.resolved.toml").write_text(BASE)  # a DEM run continues from its checkpoint
     cmd = shlex.split(job_lines(s)[0])
     assert "--restart" in cmd and "--overwrite" not in cmd

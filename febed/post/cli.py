@@ -115,12 +115,14 @@ def cmd_study(args) -> int:
     """Run `febed study` with parsed arguments; 0 if every member finished, 1 otherwise."""
     import shlex
 
-    from febed.study import collect, job_lines, load_study, member_states, run_study
+    from febed.study import collect, job_lines, load_study, member_states, resume_flags, run_study
 
     study = load_study(args.study)
     if args.list:
         for m, state in member_states(study):
-            print(f"{m.name:30s} {state:12s} {shlex.join(m.command(study, state == 'interrupted'))}")  # copy-pasteable
+            restart, overwrite = resume_flags(m, state)
+            cmd = shlex.join(m.command(study, restart=restart, overwrite=overwrite))
+            print(f"{m.name:30s} {state:12s} {cmd}")  # copy-pasteable
         return 0
     if args.jobs:
         lines = job_lines(study, retry_failed=args.retry_failed)
