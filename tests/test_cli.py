@@ -134,6 +134,10 @@ def test_status_reports_state_liveness_progress_and_checkpoint(case_file, other_
     assert "status.json: t = 0.25 / 1 s, step 40" in text
     assert "last progress line (2026-12-02 06:00:10): t = 0.25000 / 1 s  step 40" in text and "ETA 0h01m30s" in text
     assert "newest checkpoint: checkpoints/checkpoint_000000040.npz (t = 0.25 s)" in text
+    (out / "status.json").write_text(json.dumps({**info, "pid": 1}))  # alive, but no febed command line
+    main(["status", str(out)])
+    assert "process 1 is alive but its command line does not name febed" in capsys.readouterr().out
+    (out / "status.json").write_text(json.dumps(info))
     other_febed_process.kill()
     other_febed_process.wait()
     assert main(["status", str(out), str(out.parent)]) == 2  # the second is no run folder

@@ -220,6 +220,11 @@ def describe_run(outdir: Path) -> str:
             head += " (written by a febed before session 10: whether its process is alive is not known)"
         elif info.get("host") != socket.gethostname():
             head += f" on {info['host']} (cannot check from here)"
+        elif Path(f"/proc/{info['pid']}").exists():
+            head += (
+                f" (process {info['pid']} is alive but its command line does not name febed: a script using "
+                "febed's Python API, or another program that reused the process id)"
+            )
         else:
             head += " according to status.json, but its process is gone (killed?): continue it with --restart"
     lines = [head]
