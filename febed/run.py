@@ -113,6 +113,26 @@ def run_to_end(run, end: float) -> None:
         run.close()
 
 
+def record_failure(run, error, collective: bool = True) -> None:
+    """Record a failed run of any mode: the last good state, the status and the log.
+
+    Ends the progress line, writes the last good state (`run.good`) as a checkpoint if `collective` (every rank
+    takes part), sets the status to failed and logs the error with where that state is.
+    """
+    from febed.io.checkpoint import CheckpointError
+
+    run.display.end()
+    where = ""
+    if run.good is not None and collective:
+        try:
+            path = run.checkpoint(run.good)
+            where = f"; last good state (t = {run.good[1]['time']:.6g} s) in {path}"
+        except (RunFailure, CheckpointError) as e:
+            where = f"; could not write the last good state: {e}"
+    run.status("failed", f"{error}{where}")
+    run.log.error(f"run failed: {error}{where}")
+
+
 class Interrupted(Exception):
     """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
 
@@ -423,16 +443,7 @@ class CoupledRun:
 
     def fail(self, error: RunFailure, collective: bool = True) -> None:
         """Record a failure: write the last good state as a checkpoint (if `collective`) and the status."""
-        self.display.end()
-        where = ""
-        if self.good is not None and collective:
-            try:
-                path = self.checkpoint(self.good)
-                where = f"; last good state (t = {self.good[1]['time']:.6g} s) in {path}"
-            except RunFailure as e:
-                where = f"; could not write the last good state: {e}"
-        self.status("failed", f"{error}{where}")
-        self.log.error(f"run failed: {error}{where}")
+        record_failure(self, error, collective)
 
     def close(self) -> None:
         """Write the last output and close the files (not after a one-rank failure on several ranks)."""

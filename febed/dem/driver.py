@@ -372,13 +372,9 @@ class DEMRun:
 
     def fail(self, message: str) -> None:
         """Record a failure: write the last good state as a checkpoint and the status (collective)."""
-        self.display.end()
-        where = ""
-        if self.good is not None:
-            path = self.checkpoint(self.good)
-            where = f"; last good state (t = {self.good[1]['time']:.6g} s) in {path}"
-        self.status("failed", f"{message}{where}")
-        self.log.error(f"run failed: {message}{where}")
+        from febed.run import record_failure
+
+        record_failure(self, message)
 
     def close(self) -> None:
         """Nothing to close: every particle output is a complete file of its own."""

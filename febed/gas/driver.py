@@ -198,18 +198,9 @@ class GasRun:
 
     def fail(self, error) -> None:
         """Record a failure: write the last good state as a checkpoint and the status (collective)."""
-        from febed.solver import RunFailure
+        from febed.run import record_failure
 
-        self.display.end()
-        where = ""
-        if self.good is not None:
-            try:
-                path = self.checkpoint(self.good)
-                where = f"; last good state (t = {self.good[1]['time']:.6g} s) in {path}"
-            except RunFailure as e:
-                where = f"; could not write the last good state: {e}"
-        self.status("failed", f"{error}{where}")
-        self.log.error(f"run failed: {error}{where}")
+        record_failure(self, error)
 
     def catch_signals(self):
         """Handle `febed.run.STOP_SIGNALS` by stopping after the current gas step; returns the restorer."""
