@@ -49,7 +49,7 @@ from febed.coupling.weights import compute_weights
 from febed.dem.solver import DEMFailure
 from febed.io.checkpoint import FOLDER, CheckpointError, write_checkpoint
 from febed.io.probes import ProbeFile
-from febed.io.progress import Progress, clock
+from febed.io.progress import Progress, RateMeter
 from febed.io.rundir import write_status
 from febed.solver import RunFailure, build_solver
 
@@ -239,8 +239,8 @@ class CoupledRun:
         self.good = None  # (arrays, meta) of the last state that passed the health checks
         self.broken = False  # a rank failed alone: collectives would hang
         self._signal = 0
-        self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
-        self._t0 = s.t
+        self._last_progress = self._last_checkpoint = time.perf_counter()
+        self._meter = RateMeter(s.t)
 
     def _writers(self) -> None:
         import dolfinx.fem
@@ -397,14 +397,10 @@ class CoupledRun:
         now = time.perf_counter()
         self._last_progress = now
         s = self.solver
-        done = s.t - self._t0
-        wall = now - self._wall0
-        rate = wall / done if done > 0 else math.nan
-        eta = rate * (end - s.t) if done > 0 else math.nan
         n = self.comm.allreduce(s.dem.particles.n_owned)
         self.display.show(
             f"t = {s.t:.5f} / {end:g} s  step {s.steps}  {n} particles  {s.n_sub} sub-steps/step  "
-            f"{rate / 60:.2f} min wall per simulated s  ETA {clock(eta)}"
+            f"{self._meter.text(s.t, end, now)}"
         )
 
     def advance_to(self, end: float) -> None:

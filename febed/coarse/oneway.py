@@ -144,7 +144,7 @@ def run_oneway(case: OneWayCase, outdir, log=None, dem=None, sink=None) -> OneWa
     ETA) every `progress_interval` wall seconds. A particle whose position or velocity is no longer finite
     stops the run (`febed.solver.RunFailure`, naming the particle and the time).
     """
-    from febed.io.progress import Progress, clock
+    from febed.io.progress import Progress, RateMeter
 
     if dem is None:
         raise ValueError("dem: build the particles (a DEM) first, e.g. `febed.dem.driver.build_dem`")
@@ -155,6 +155,7 @@ def run_oneway(case: OneWayCase, outdir, log=None, dem=None, sink=None) -> OneWa
     next_out = [0.0]
     display = Progress(log, 0) if log is not None else None
     t0 = last = time.perf_counter()
+    meter = RateMeter(ow.t, now=t0)
 
     with open(out / "particles.csv", "w") as csv:
         csv.write("t,gid,x,y,z,vx,vy,vz\n")
@@ -179,11 +180,9 @@ def run_oneway(case: OneWayCase, outdir, log=None, dem=None, sink=None) -> OneWa
             now = time.perf_counter()
             if display is not None and (now - last >= case.progress_interval or o.t >= case.end_time * (1 - 1e-12)):
                 last = now
-                rate = (now - t0) / o.t if o.t > 0 else math.nan
                 display.show(
                     f"t = {o.t:.5g} / {case.end_time:g} s  {o.windows} drag windows  {P.n_owned} particles  "
-                    f"{o.removed} removed  {rate / 60:.3g} min wall per simulated s  "
-                    f"ETA {clock(rate * (case.end_time - o.t))}"
+                    f"{o.removed} removed  {meter.text(o.t, case.end_time, now)}"
                 )
 
         try:

@@ -235,7 +235,7 @@ class DEMRun:
         """Build the mesh, walls and bed; `restart`: (path, arrays, meta) of a checkpoint to continue."""
         from febed import restart as rs
         from febed.io.particles import ParticleWriter
-        from febed.io.progress import Progress
+        from febed.io.progress import Progress, RateMeter
         from febed.meshing import load_case_mesh
 
         self.case, self.outdir, self.log, self.comm = case, Path(outdir), log, comm
@@ -267,8 +267,8 @@ class DEMRun:
         self.display = Progress(log, comm.rank)
         self.good = None  # (arrays, meta) of the last particle output
         self._signal = 0
-        self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
-        self._t0 = self.dem.time
+        self._last_progress = self._last_checkpoint = time.perf_counter()
+        self._meter = RateMeter(self.dem.time)
 
     # ------------------------------------------------------------------------------------ state
     def capture(self) -> tuple[dict, dict]:
@@ -357,17 +357,12 @@ class DEMRun:
 
     def progress(self, end: float) -> None:
         """The progress line: simulated time, steps, particles, particles left, wall time rate, ETA (collective)."""
-        from febed.io.progress import clock
-
         now = time.perf_counter()
         self._last_progress = now
         dem = self.dem
-        done = dem.time - self._t0
-        rate = (now - self._wall0) / done if done > 0 else math.nan
         self.display.show(
             f"t = {dem.time:.5f} / {end:g} s  step {dem.steps}  {dem.count()} particles  "
-            f"{self.comm.allreduce(self.left)} left  {rate / 60:.2f} min wall per simulated s  "
-            f"ETA {clock(rate * (end - dem.time))}"
+            f"{self.comm.allreduce(self.left)} left  {self._meter.text(dem.time, end, now)}"
         )
 
     def fail(self, message: str) -> None:

@@ -19,7 +19,6 @@ stops the run with a message naming the node and the time, writes the last state
 from __future__ import annotations
 
 import logging
-import math
 import time
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from febed import restart as rs
 from febed.gas.pressure import PressureSolveError
 from febed.gas.vans import VANSSolver
 from febed.io.fields import FieldWriter
-from febed.io.progress import Progress, clock
+from febed.io.progress import Progress, RateMeter
 
 GOOD_EVERY = 10  # gas steps between the copies of the state kept as the last good one (and at every output)
 
@@ -73,7 +72,8 @@ class GasRun:
         self.last_info = None
         self._signal = 0
         self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
-        self._t0, self._steps0 = s.t, self.steps
+        self._steps0 = self.steps
+        self._meter = RateMeter(s.t)
 
     # ------------------------------------------------------------------------------------ state
     def capture(self) -> tuple[dict, dict]:
@@ -180,9 +180,7 @@ class GasRun:
         now = time.perf_counter()
         self._last_progress = now
         s = self.solver
-        done = s.t - self._t0
         steps = self.steps - self._steps0
-        rate = (now - self._wall0) / done if done > 0 else math.nan
         info = self.last_info
         gas = (
             f"dt {info.dt:.3g} s  CFL {info.cfl:.3f}  Poisson its {info.poisson_iterations}  "
@@ -192,8 +190,7 @@ class GasRun:
         )
         per_step = f"{1e3 * (now - self._wall0) / steps:.1f} ms/step  " if steps else ""
         self.display.show(
-            f"t = {s.t:.5g} / {end:g} s  step {self.steps}  {gas}{per_step}{rate / 60:.2f} min wall per simulated s  "
-            f"ETA {clock(rate * (end - s.t))}"
+            f"t = {s.t:.5g} / {end:g} s  step {self.steps}  {gas}{per_step}{self._meter.text(s.t, end, now)}"
         )
 
     def fail(self, error) -> None:

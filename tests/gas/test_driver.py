@@ -135,9 +135,11 @@ def test_gas_run_restarts_on_any_rank_count_and_refuses_other_modes(mpi_tmp_path
     for k, v in (("u", s.u), ("p", s.p)):  # same node order: same mesh, same ranks
         scale = comm.allreduce(float(np.abs(ref[k]).max()), op=MPI.MAX)
         err = comm.allreduce(float(np.abs(v - ref[k]).max()), op=MPI.MAX)
-        # ML set up anew in this process keeps state from the first setup: round-off, not bits (measured: p 3.5e-8
-        # serially; 0 on 2 ranks with GAMG); `test_gas_run_stopped_and_restarted_is_bit_identical` uses processes
-        assert err <= 1e-7 * scale, k
+        # ML set up anew in this process keeps state from earlier setups: the Poisson solves stop elsewhere within
+        # their mass tolerance, so round-off, not bits (measured: p 3.5e-8 serially when run alone, 1.1e-7 after
+        # tests/test_coarse_case.py's solves; 0 on 2 ranks with GAMG); a wrong restart is off by 1e-2 or more.
+        # `test_gas_run_stopped_and_restarted_is_bit_identical` compares processes, bit for bit
+        assert err <= 1e-6 * scale, k
     # a checkpoint of another mode is refused with a message
     _, arrays, meta = load_checkpoint(base, comm)
     from febed.restart import check_restartable
