@@ -8,6 +8,7 @@
     febed mesh NAME [--level L] [--cell C] [--size H] [--extent ...] -o FILE.msh   build a built-in mesh
     febed post RUN_DIR [--window T0 T1] ...                            time-averaged fields, profiles, series
     febed study STUDY.toml [--list | --jobs FILE]                      run / resume / compare a case family
+    febed compare RUN_DIR RUN_DIR ... [--labels ...] [--window T0 T1]  one table + figures of separate runs
 
 Errors in the user's input (case, mesh, output folder, values a solver refuses) are printed as one clear
 message and exit with status 2; a run that fails (a particle escaping, ...) exits with status 3 after
@@ -92,6 +93,7 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="output folder(s) of febed runs")
     post_cli.add_post_parser(sub)
     post_cli.add_study_parser(sub)
+    post_cli.add_compare_parser(sub)
     return p
 
 
@@ -233,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         "status": cmd_status,
         "post": post_cli.cmd_post,
         "study": post_cli.cmd_study,
+        "compare": post_cli.cmd_compare,
     }
     try:
         return commands[args.command](args)

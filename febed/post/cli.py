@@ -1,11 +1,13 @@
-"""Command-line parts of `febed post` and `febed study`, wired into `febed` by febed/cli.py.
+"""Command-line parts of `febed post`, `febed study` and `febed compare`, wired into `febed` by febed/cli.py.
 
     febed post RUN_DIR [--window T0 T1] [--bins NX NZ] [--kernel ngp|cic] [--agitation cell|window]
                        [--heights H ...] [--no-figures] [-o OUT]
     febed study STUDY.toml [--list | --jobs FILE] [--collect-only] [--retry-failed] [--no-fields]
+    febed compare RUN_DIR RUN_DIR ... [--labels A B ...] [--window T0 T1 [--window T0 T1 ...]] [-o OUT]
 
-The same commands without the `febed` front end: `python -m febed.post RUN_DIR ...` and
-`python -m febed.post study STUDY.toml ...`. Bad input raises ValueError (printed by febed/cli.py).
+The same commands without the `febed` front end: `python -m febed.post RUN_DIR ...`,
+`python -m febed.post study STUDY.toml ...` and `python -m febed.post compare RUN_DIR ...`.
+Bad input raises ValueError (printed by febed/cli.py).
 """
 
 from __future__ import annotations
@@ -139,6 +141,57 @@ def cmd_study(args) -> int:
     return 0 if ok else 1
 
 
+def add_compare_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the `compare` sub-command to an argparse subparsers object; returns its parser."""
+    p = subparsers.add_parser(
+        "compare",
+        help="one table and figures comparing run folders made separately (a mesh or parameter sweep by hand)",
+    )
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="output folders of febed runs")
+    p.add_argument("--labels", nargs="+", metavar="NAME", help="a name per run (default the folder names)")
+    p.add_argument(
+        "--window",
+        type=float,
+        nargs=2,
+        action="append",
+        metavar=("T0", "T1"),
+        help="averaging window [s]: once for every run, or once per run in order; default the last half of each",
+    )
+    p.add_argument("--height", type=float, default=0.092, metavar="Z/H", help="profile height z/H (0.092)")
+    p.add_argument("--no-fields", action="store_true", help="probe series only (no particle averages)")
+    p.add_argument("-o", "--output", default="comparison", help="output folder (default ./comparison)")
+    return p
+
+
+def cmd_compare(args) -> int:
+    """Run `febed compare` with parsed arguments; prints the table's main columns and the files written."""
+    from mpi4py import MPI
+
+    from febed.post.collect import compare_runs
+
+    if MPI.COMM_WORLD.rank != 0:
+        return 0
+    table = compare_runs(
+        args.run_dirs,
+        labels=args.labels,
+        windows=[tuple(w) for w in args.window] if args.window else None,
+        fields=not args.no_fields,
+        height=args.height,
+        out=args.output,
+    )
+    print(f"{'run':24s} {'window [s]':>13s} {'dp/W':>6s} {'bed [mm]':>8s} {'centre':>7s} {'walls':>7s} {'bubbles':>7s}")
+    for r in table.rows:
+        print(
+            f"{r['run']:24s} {r['window_t0']:6.3g}-{r['window_t1']:<6.3g} {r['dp_bed_over_weight']:6.3f} "
+            f"{1e3 * r['bed_height_mean']:8.1f} {r['bed_flux_centre/rhoUf']:+7.1f} {r['bed_flux_walls/rhoUf']:+7.1f} "
+            f"{r['bubble_fraction']:7.3f}"
+        )
+    print(f"wrote {table.csv}")
+    for f in table.figures:
+        print(f"  wrote {f}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """`python -m febed.post`: `RUN_DIR [options]` or `study STUDY.toml [options]`."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -146,11 +199,12 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     add_post_parser(sub)
     add_study_parser(sub)
-    if not argv or argv[0] not in ("post", "study", "-h", "--help"):
+    add_compare_parser(sub)
+    if not argv or argv[0] not in ("post", "study", "compare", "-h", "--help"):
         argv = ["post", *argv]
     args = parser.parse_args(argv)
     try:
-        return cmd_post(args) if args.command == "post" else cmd_study(args)
+        return {"post": cmd_post, "study": cmd_study, "compare": cmd_compare}[args.command](args)
     except ValueError as e:
         print(f"febed {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -1,12 +1,16 @@
-"""The comparison of a study's members (`febed study`, `febed.study.collect`): one table, a few figures.
+"""Comparisons of runs in one table and a few figures: a study's members or any run folders.
 
-Per member, over the study's window (default: the last half of that member's output):
+`compare_members` serves `febed study` (`febed.study.collect`), `compare_runs` serves `febed compare`.
+
+Per run, over its averaging window (default: the last half of that run's output):
 
 * mean and standard deviation of the bed pressure drop `dp_bed`, its ratio to the buoyant bed weight per
   cross-section, mean and standard deviation of the bed height (probes);
 * from the particle output (unless fields=False): the time-averaged vertical solid mass flux / ρU_f at
   z/H = `height`, in the centre (x/L = 0.5) and next to the side walls (mean over the outer 10 % of each
-  side), and the whole profile for an overlay figure (seed 001 Figs 13, 18).
+  side), and the whole profile for an overlay figure (seed 001 Figs 13, 18);
+* the bed's circulation (the flux averaged below the bed height in the central third and the outer 15 %),
+  its bubble fraction and agitation energy, and the share of the weight on the bottom (`febed post`).
 """
 
 from __future__ import annotations
@@ -21,39 +25,42 @@ from febed.post.rundata import list_snapshots, run_info, select_window
 from febed.post.series import read_series, summarize, weight_per_area
 from febed.post.support import bottom_support
 
+NUMBERS = (
+    "t_reached", "window_t0", "window_t1", "dp_bed_mean", "dp_bed_std", "weight_per_area", "dp_bed_over_weight",
+    "bed_height_mean", "bed_height_std", "bed_height_over_H", "snapshots", "flux_centre/rhoUf", "flux_walls/rhoUf",
+    "bed_flux_centre/rhoUf", "bed_flux_walls/rhoUf", "bubble_fraction", "q2_bed/Uf2", "bottom_support/W",
+)  # fmt: skip
 
-def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict, tuple | None]:
+
+def run_row(directory, window=None, fields: bool = True, height: float = 0.092) -> tuple[dict, tuple | None]:
+    """The comparison's numbers of one run folder (NaN where it has no data) and its flux profile (x/L, flux/ρU_f).
+
+    `window` (s): the averaging window, default the last half of the run's output so far.
+    """
     from febed.study import read_status
 
-    row = {"member": m.name, "state": state}
-    row.update({k: m.values.get(k, "") for k in study.parameters})
     nan = math.nan
-    row.update({
-        "t_reached": nan, "dp_bed_mean": nan, "dp_bed_std": nan, "weight_per_area": nan, "dp_bed_over_weight": nan,
-        "bed_height_mean": nan, "bed_height_std": nan, "bed_height_over_H": nan, "snapshots": 0,
-        "flux_centre/rhoUf": nan, "flux_walls/rhoUf": nan, "bed_flux_centre/rhoUf": nan, "bed_flux_walls/rhoUf": nan,
-        "bubble_fraction": nan, "q2_bed/Uf2": nan, "bottom_support/W": nan,
-    })  # fmt: skip
-    if state == "new":
-        return row, None
+    row = {k: nan for k in NUMBERS}
+    row["snapshots"] = 0
     try:
-        info = run_info(m.directory)
+        info = run_info(directory)
     except ValueError:
         return row, None
-    series = read_series(m.directory)
+    series = read_series(directory)
     try:
-        snaps = list_snapshots(m.directory)
+        snaps = list_snapshots(directory)
     except ValueError:
         snaps = []
-    status = read_status(m.directory) or {}
+    status = read_status(directory) or {}
     t_last = max([float(series["time"][-1])] if series.get("time") is not None and series["time"].size else [nan])
     if snaps:
         t_last = max(t_last, snaps[-1][0]) if math.isfinite(t_last) else snaps[-1][0]
     row["t_reached"] = float(status.get("time", t_last))
-    window = study.window
     if window is None and math.isfinite(t_last):
         t_first = float(series["time"][0]) if series.get("time") is not None else snaps[0][0]
         window = (t_first + 0.5 * (t_last - t_first), t_last)
+    if window is not None:
+        row["window_t0"], row["window_t1"] = float(window[0]), float(window[1])
     profile = None
     volume = nan
     avg = None
@@ -62,7 +69,7 @@ def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict
 
         try:
             select_window(snaps, window)
-            avg = average_fields(m.directory, window=window)
+            avg = average_fields(directory, window=window)
         except ValueError:
             avg = None
         if avg is not None:
@@ -93,8 +100,19 @@ def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict
             row["bubble_fraction"] = avg.bubble_fraction(0.8 * h)
             row["q2_bed/Uf2"] = avg.bed_agitation(h) / s["U_f"] ** 2
     if avg is not None:
-        row["bottom_support/W"] = bottom_support(m.directory, info, avg.window)
+        row["bottom_support/W"] = bottom_support(directory, info, avg.window)
     return row, profile
+
+
+def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict, tuple | None]:
+    row = {"member": m.name, "state": state}
+    row.update({k: m.values.get(k, "") for k in study.parameters})
+    if state == "new":
+        numbers, profile = {k: math.nan for k in NUMBERS}, None
+        numbers["snapshots"] = 0
+    else:
+        numbers, profile = run_row(m.directory, study.window, fields, height)
+    return {**row, **numbers}, profile
 
 
 def _numeric(values) -> bool:
@@ -109,16 +127,7 @@ def _figures(study, rows: list[dict], profiles: dict, height: float, out: Path) 
 
     files = []
     varied = [k for k, vals in study.parameters.items() if len(vals) > 1]
-    quantities = [
-        ("dp_bed_over_weight", r"$\overline{\Delta p_{bed}}/(W/A)$"),
-        ("bed_height_over_H", "bed height / H"),
-        ("flux_centre/rhoUf", f"solid flux/ρU_f, centre, z/H={height:g}"),
-        ("flux_walls/rhoUf", f"solid flux/ρU_f, walls, z/H={height:g}"),
-        ("bubble_fraction", "bubble fraction below 0.8 H_bed"),
-        ("q2_bed/Uf2", r"$q_p^2/U_f^2$ in the bed"),
-        ("bottom_support/W", "weight on the bottom by contact / W"),
-    ]
-    quantities = [(q, lab) for q, lab in quantities if any(math.isfinite(r[q]) for r in rows)]
+    quantities = _quantities(rows, height)
     for p in varied if quantities else []:
         vals = study.parameters[p]
         numeric = _numeric(vals)
@@ -150,19 +159,51 @@ def _figures(study, rows: list[dict], profiles: dict, height: float, out: Path) 
         plt.close(fig)
         files.append(path)
     if profiles:
-        fig, ax = plt.subplots(figsize=(5.5, 3.6))
-        for name, (xl, f) in profiles.items():
-            ax.plot(xl, f, marker="o", ms=2, label=name)
-        ax.axhline(0.0, color="k", lw=0.6)
-        ax.set(xlabel="x/L", ylabel=r"$\overline{\langle\alpha_p\rho_p U_{p,z}\rangle}_{xz}/\rho U_f$", xlim=(0, 1))
-        ax.set_title(f"vertical solid mass flux at z/H = {height:g}", fontsize=9)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = out / "profiles_flux.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        files.append(path)
+        files.append(_profile_figure(profiles, height, out))
     return files
+
+
+def _quantities(rows: list[dict], height: float) -> list[tuple[str, str]]:
+    """The (column, axis label) of the comparison's figures that hold a number for at least one row."""
+    quantities = [
+        ("dp_bed_over_weight", r"$\overline{\Delta p_{bed}}/(W/A)$"),
+        ("bed_height_over_H", "bed height / H"),
+        ("flux_centre/rhoUf", f"solid flux/ρU_f, centre, z/H={height:g}"),
+        ("flux_walls/rhoUf", f"solid flux/ρU_f, walls, z/H={height:g}"),
+        ("bubble_fraction", "bubble fraction below 0.8 H_bed"),
+        ("q2_bed/Uf2", r"$q_p^2/U_f^2$ in the bed"),
+        ("bottom_support/W", "weight on the bottom by contact / W"),
+    ]
+    return [(q, lab) for q, lab in quantities if any(math.isfinite(r[q]) for r in rows)]
+
+
+def _profile_figure(profiles: dict, height: float, out: Path, title: str = "") -> Path:
+    """The runs' vertical solid mass flux profiles at z/H = `height` on one plot (seed 001 Figs 13, 18)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for name, (xl, f) in profiles.items():
+        ax.plot(xl, f, marker="o", ms=2, label=name)
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set(xlabel="x/L", ylabel=r"$\overline{\langle\alpha_p\rho_p U_{p,z}\rangle}_{xz}/\rho U_f$", xlim=(0, 1))
+    ax.set_title(title or f"vertical solid mass flux at z/H = {height:g}", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = out / "profiles_flux.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _write_rows(rows: list[dict], path: Path) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
 
 
 def compare_members(study, fields: bool = True, height: float = 0.092, out: Path | None = None):
@@ -180,11 +221,7 @@ def compare_members(study, fields: bool = True, height: float = 0.092, out: Path
         if prof is not None:
             profiles[m.name] = prof
     path = out / "comparison.csv"
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    _write_rows(rows, path)
     if profiles:
         xl = next(iter(profiles.values()))[0]
         same = all(len(p[0]) == len(xl) and np.allclose(p[0], xl) for p in profiles.values())
@@ -196,3 +233,90 @@ def compare_members(study, fields: bool = True, height: float = 0.092, out: Path
                     w.writerow([f"{xl[k]:.6g}", *(f"{p[1][k]:.6g}" for p in profiles.values())])
     figs = _figures(study, rows, profiles, height, out)
     return Comparison(rows=rows, csv=path, figures=figs, profiles=profiles)
+
+
+def compare_runs(directories, labels=None, windows=None, fields: bool = True, height: float = 0.092, out="comparison"):
+    """Compare run folders made independently (e.g. C1, C2, C3 of a mesh study run one by one): `febed compare`.
+
+    One row per run, in the given order, with the numbers of `run_row` (`comparison.csv`), the flux profiles
+    at z/H = `height` in long form (`profiles_flux.csv`: run, x/L, flux/ρU_f; the runs' bins may differ),
+    and figures: each quantity against the runs (`comparison_runs.png`) and the profiles on one plot.
+    `windows`: None (the last half of each run), one (t0, t1) for all, or one per run.
+    """
+    from febed.study import Comparison
+
+    directories = [Path(d) for d in directories]
+    if not directories:
+        raise ValueError("give at least one run folder to compare")
+    for d in directories:
+        if not d.is_dir():
+            raise ValueError(f"run folder {d} does not exist")
+        run_info(d)  # raises ValueError naming the folder when it holds no run
+    labels = list(labels) if labels else [d.resolve().name for d in directories]
+    if len(labels) != len(directories):
+        raise ValueError(f"labels: {len(labels)} label(s) for {len(directories)} run folder(s)")
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"labels: the runs' labels must differ (got {labels}); name them with --labels")
+    windows = list(windows) if windows else [None]
+    if len(windows) == 1:
+        windows = windows * len(directories)
+    if len(windows) != len(directories):
+        raise ValueError(
+            f"window: {len(windows)} window(s) for {len(directories)} run folder(s): give one or one per run"
+        )
+    for w in windows:
+        if w is not None and not (len(w) == 2 and w[0] < w[1]):
+            raise ValueError(f"window: {w}: expected T0 T1 with T0 < T1")
+    if not 0.0 <= height <= 1.0:
+        raise ValueError(f"height: expected z/H in [0, 1], got {height}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows, profiles = [], {}
+    for d, label, w in zip(directories, labels, windows, strict=True):
+        numbers, prof = run_row(d, w, fields, height)
+        rows.append({"run": label, "directory": str(d), **numbers})
+        if prof is not None:
+            profiles[label] = prof
+    path = out / "comparison.csv"
+    _write_rows(rows, path)
+    figs = []
+    if profiles:
+        with open(out / "profiles_flux.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["run", "x/L", "flux/rhoUf"])
+            for label, (xl, fl) in profiles.items():
+                for a, b in zip(xl, fl, strict=True):
+                    w.writerow([label, f"{a:.6g}", f"{b:.6g}"])
+        figs.append(_profile_figure(profiles, height, out))
+    quantities = _quantities(rows, height)
+    if quantities:
+        figs.append(_runs_figure(rows, quantities, out))
+    return Comparison(rows=rows, csv=path, figures=figs, profiles=profiles)
+
+
+def _runs_figure(rows: list[dict], quantities: list[tuple[str, str]], out: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ncols = min(4, len(quantities))
+    nrows = -(-len(quantities) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(3.4 * ncols, 3.2 * nrows), squeeze=False)
+    axes = axes.ravel()
+    names = [r["run"] for r in rows]
+    for ax, (q, ylabel) in zip(axes, quantities, strict=False):
+        ax.plot(range(len(rows)), [r[q] for r in rows], marker="o", ls="none")
+        ax.set_xticks(range(len(rows)), names, rotation=20, fontsize=8)
+        ax.set_ylabel(ylabel, fontsize=8)
+        if q == "dp_bed_over_weight":
+            ax.axhline(1.0, color="k", ls="--", lw=0.7)
+    for ax in axes[len(quantities) :]:
+        ax.set_visible(False)
+    windows = ", ".join(f"{r['run']} {r['window_t0']:g}-{r['window_t1']:g} s" for r in rows)
+    fig.suptitle(f"means over the averaging windows ({windows})", fontsize=8)
+    fig.tight_layout()
+    path = out / "comparison_runs.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -368,3 +368,53 @@ def test_bottom_support_is_the_elastic_force_of_the_overlaps(tmp_path, contact):
     )
     tm = make_run(tmp_path / "tm", snaps, case=CASE + f'[contact]\n{contact}\n[coarse_grain]\nmodel = "tm"\n')
     assert math.isnan(bottom_support(tm, run_info(tm)))  # parcels' stiffness: not covered
+
+
+def test_compare_runs_made_separately(tmp_path, capsys):
+    """`febed compare`: each run's row holds what `febed post` finds over the same window, whatever its mesh."""
+    from febed.post import collect
+    from febed.post.cli import main
+
+    pos, bins, _ = lattice()
+    vel = np.array([bin_velocity(i, j) for i, j in bins])
+    w_a = (RHO_P - RHO_G) * 9.81 * len(pos) * VP / (L * D)
+    runs = {}
+    for level, gain in (("coarse", 1.0), ("intermediate", 1.1)):
+        run = make_run(tmp_path / level, [(0.1 * k, pos, gain * vel) for k in range(5)],
+                       case=CASE.replace('level = "coarse"', f'level = "{level}"'))  # fmt: skip
+        t = np.linspace(0, 0.4, 41)
+        with open(run / "probes.csv", "w") as fh:
+            fh.write("time,particles,bed_height,dp_bed\n")
+            for tt in t:
+                fh.write(f"{tt!r},{len(pos)},0.15,{gain * w_a * (1 + 0.1 * np.sin(40 * tt))!r}\n")
+        runs[level] = run
+    windows = [(0.1, 0.3), (0.2, 0.4)]
+    table = collect.compare_runs(list(runs.values()), ["C1", "C2"], windows, out=tmp_path / "cmp")
+    assert [r["run"] for r in table.rows] == ["C1", "C2"]
+    for r, run, w in zip(table.rows, runs.values(), windows, strict=True):
+        ref = post_run(run, window=w, figures=False, out=tmp_path / f"post-{run.name}").values
+        assert (r["window_t0"], r["window_t1"]) == w and r["snapshots"] == ref["snapshots"] == 3
+        for key in ("dp_bed_over_weight", "bed_height_mean", "bed_flux_centre/rhoUf", "bed_flux_walls/rhoUf",
+                    "bubble_fraction", "q2_bed/Uf2"):  # fmt: skip
+            assert r[key] == pytest.approx(ref[key], rel=1e-12, abs=1e-30), key
+    # the profiles in long form: each run on its own mesh's bins (17 and 35 across the width), as `febed post`'s
+    prof = np.genfromtxt(tmp_path / "cmp" / "profiles_flux.csv", delimiter=",", names=True, dtype=None, encoding=None)
+    for label, run, n in (("C1", "coarse", 17), ("C2", "intermediate", 35)):
+        ref = np.loadtxt(tmp_path / f"post-{run}" / "profile_zH0.092.csv", delimiter=",", skiprows=1)
+        mine = prof[prof["run"] == label]
+        assert len(mine) == n and np.allclose(mine["fluxrhoUf"], ref[:, 4], rtol=1e-5, atol=1e-9)
+    assert {f.name for f in table.figures} == {"profiles_flux.png", "comparison_runs.png"}
+    # the command line: one window for all runs, folder names as labels
+    assert main(["compare", *map(str, runs.values()), "--window", "0.1", "0.4", "-o", str(tmp_path / "c2")]) == 0
+    out = capsys.readouterr().out
+    assert "coarse" in out and "intermediate" in out and "comparison.csv" in out
+    # bad input: a message naming what is wrong, status 2
+    for argv, what in (
+        (["compare", str(runs["coarse"]), "--labels", "a", "b"], "2 label(s) for 1 run folder"),
+        (["compare", *map(str, runs.values()), "--labels", "a", "a"], "labels must differ"),
+        (["compare", *map(str, runs.values()), *["--window", "0", "1"] * 3], "3 window"),
+        (["compare", str(runs["coarse"]), "--window", "0.3", "0.1"], "T0 < T1"),
+        (["compare", str(tmp_path / "nowhere")], "does not exist"),
+    ):
+        assert main([*argv, "-o", str(tmp_path / "bad")]) == 2
+        assert what in capsys.readouterr().err, argv
