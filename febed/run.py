@@ -359,10 +359,10 @@ class CoupledRun:
     def _log_balance(self) -> None:
         if self.comm.size == 1:
             return
-        counts = self.comm.allgather(self.solver.dem.particles.n_owned)
-        mean = sum(counts) / len(counts)
-        if mean > 0:
-            self.log.info(f"particles per rank {counts}: load imbalance max/mean = {max(counts) / mean:.3f}")
+        from febed.parallel.exchange import balance_line
+
+        dem = self.solver.dem
+        self.log.info(balance_line(self.comm, dem.particles.n_owned, dem.pairs.size))
 
     # ---------------------------------------------------------------------------------- checkpoints
     def checkpoint(self, state=None) -> Path:

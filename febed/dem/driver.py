@@ -422,5 +422,8 @@ def _log_balance(dem: DEM, log) -> None:
     """Log the particle load imbalance max/mean over ranks (collective; nothing on one process)."""
     if dem.exchange is None:
         return
-    total, imbalance, ghosts = dem.exchange.counts(dem.particles)
-    log.info(f"particles per rank: imbalance max/mean {imbalance:.3f} ({total} particles, {ghosts} ghosts)")
+    from febed.parallel.exchange import balance_line
+
+    total, _, ghosts = dem.exchange.counts(dem.particles)
+    line = balance_line(dem.exchange.comm, dem.particles.n_owned, dem.pairs.size)
+    log.info(f"{line}; {total} particles, {ghosts} ghosts")

@@ -367,3 +367,18 @@ class ParticleExchange:
         total = int(c[:, 0].sum())
         mean = total / self.size
         return total, (float(c[:, 0].max()) / mean if mean > 0 else 1.0), int(c[:, 1].sum())
+
+
+def balance_line(comm, owned: int, pairs: int) -> str:
+    """The log's load-balance line: particles and listed contact pairs per rank, max/mean of each (collective).
+
+    The pairs measure the DEM's work better than the particles: a rank holding the denser part of a bed
+    lists more pairs per particle (C2 at t = 4.03 s: particles 1.14 max/mean, pairs 1.27). Before the first
+    step (no pair lists yet) only the particles are reported.
+    """
+    c = np.array(comm.allgather((owned, pairs)), dtype=np.int64)
+    ratio = [float(c[:, k].max()) / c[:, k].mean() if c[:, k].sum() > 0 else 1.0 for k in (0, 1)]
+    line = f"particles per rank {c[:, 0].tolist()}: load imbalance max/mean = {ratio[0]:.3f}"
+    if c[:, 1].sum() > 0:
+        line += f"; listed pairs per rank {c[:, 1].tolist()}: max/mean = {ratio[1]:.3f} (the DEM's work)"
+    return line

@@ -230,3 +230,23 @@ def test_particles_inserted_anywhere_go_to_their_owners():
     held = np.concatenate(COMM.allgather(P.gid[:n].copy()))
     assert np.array_equal(np.sort(held), np.sort(everyone)) and np.unique(held).size == 40 * COMM.size
     assert np.all(ex.claim(P.pos[:n]) == COMM.rank)  # each particle sits in a cell of its rank
+
+
+@pytest.mark.mpi
+def test_balance_line_reports_particles_and_pairs_per_rank():
+    """The log's balance line: both counts gathered in rank order, max/mean of each, the same line on every rank."""
+    from febed.parallel.exchange import balance_line
+
+    comm = MPI.COMM_WORLD
+    r, n = comm.rank, comm.size
+    line = balance_line(comm, 10 * (r + 1), 100 * (r + 1) ** 2)
+    owned, pairs = [10 * (k + 1) for k in range(n)], [100 * (k + 1) ** 2 for k in range(n)]
+    expect = (
+        f"particles per rank {owned}: load imbalance max/mean = {max(owned) / np.mean(owned):.3f}; "
+        f"listed pairs per rank {pairs}: max/mean = {max(pairs) / np.mean(pairs):.3f} (the DEM's work)"
+    )
+    assert line == expect and comm.allgather(line) == [line] * n
+    if n == 2:
+        assert "max/mean = 1.333" in line and "max/mean = 1.600" in line
+    empty = balance_line(comm, 0, 0)  # an empty bed, or before the first step: balanced, not NaN; no pairs yet
+    assert empty.endswith("load imbalance max/mean = 1.000") and "pairs" not in empty
