@@ -49,6 +49,16 @@ def add_post_parser(subparsers) -> argparse.ArgumentParser:
         metavar="A",
         help=f"a bin whose instantaneous solid fraction is below A is bubble (default {BUBBLE_ALPHA})",
     )
+    p.add_argument(
+        "--depth-height",
+        type=float,
+        default=0.16,
+        metavar="Z/H",
+        help="height of the particle velocity profile across the depth (3D runs; 0.16, seed 001 Fig 11)",
+    )
+    p.add_argument(
+        "--depth-bins", type=int, metavar="N", help="bins across the depth (default the built-in mesh's cells)"
+    )
     p.add_argument("--no-figures", action="store_true", help="CSV tables only")
     p.add_argument("-o", "--output", help="output folder (default RUN_DIR/post)")
     return p
@@ -75,6 +85,8 @@ def cmd_post(args) -> int:
         figures=not args.no_figures,
         out=args.output,
         bubble_alpha=args.bubble_alpha,
+        depth_height=args.depth_height,
+        depth_bins=args.depth_bins,
     )
     v = res.values
     print(
@@ -89,6 +101,13 @@ def cmd_post(args) -> int:
             f"q_p^2/U_f^2 in the bed {v['q2_bed/Uf2']:.4f}"
         )
         print(f"  the bottom wall carries {v['bottom_support/W']:.3f} of the bed weight by contact")
+    key = f"depth_zH{args.depth_height:g}_spread_all/Uf"
+    if key in v:
+        print(
+            f"  across the depth at z/H = {args.depth_height:g}, U_p,z varies by {v[key]:.3f} U_f over the whole "
+            f"width and {v[key.replace('_all', '_walls')]:.3f} U_f at the side walls (max - min; ~0: two-dimensional); "
+            f"solid (front - back)/(front + back) {v[key.replace('spread_all/Uf', 'front_back_asymmetry')]:+.3f}"
+        )
     for f in res.files:
         print(f"  wrote {f}")
     return 0

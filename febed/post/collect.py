@@ -10,7 +10,10 @@ Per run, over its averaging window (default: the last half of that run's output)
   z/H = `height`, in the centre (x/L = 0.5) and next to the side walls (mean over the outer 10 % of each
   side), and the whole profile for an overlay figure (seed 001 Figs 13, 18);
 * the bed's circulation (the flux averaged below the bed height in the central third and the outer 15 %),
-  its bubble fraction and agitation energy, and the share of the weight on the bottom (`febed post`).
+  its bubble fraction and agitation energy, and the share of the weight on the bottom (`febed post`);
+* 3D runs: `depth_spread/Uf`, the spread (max − min) of the vertical particle velocity across the depth at
+  z/H = 0.16 over the whole width (`febed.post.depth`, seed 001 Fig 11) and `depth_asymmetry`, the solid's
+  (front − back)/(front + back) there: both ~0 for a two-dimensional bed.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ NUMBERS = (
     "t_reached", "window_t0", "window_t1", "dp_bed_mean", "dp_bed_std", "weight_per_area", "dp_bed_over_weight",
     "bed_height_mean", "bed_height_std", "bed_height_over_H", "snapshots", "flux_centre/rhoUf", "flux_walls/rhoUf",
     "bed_flux_centre/rhoUf", "bed_flux_walls/rhoUf", "bubble_fraction", "q2_bed/Uf2", "bottom_support/W",
+    "depth_spread/Uf", "depth_asymmetry",
 )  # fmt: skip
 
 
@@ -64,12 +68,17 @@ def run_row(directory, window=None, fields: bool = True, height: float = 0.092) 
     profile = None
     volume = nan
     avg = None
+    depth = None
     if fields and snaps:
-        from febed.post.fields import average_fields
+        from febed.post.depth import DepthProfile, default_depth_bins
+        from febed.post.fields import average_fields, default_bins, make_grid
 
+        grid = make_grid(info, default_bins(directory, info))
+        if info.dim == 3:
+            depth = DepthProfile(info, grid, default_depth_bins(directory, info))
         try:
             select_window(snaps, window)
-            avg = average_fields(directory, window=window)
+            avg = average_fields(directory, window=window, bins=grid.n, visitors=(depth,) if depth else ())
         except ValueError:
             avg = None
         if avg is not None:
@@ -101,6 +110,9 @@ def run_row(directory, window=None, fields: bool = True, height: float = 0.092) 
             row["q2_bed/Uf2"] = avg.bed_agitation(h) / s["U_f"] ** 2
     if avg is not None:
         row["bottom_support/W"] = bottom_support(directory, info, avg.window)
+        if depth is not None:
+            row["depth_spread/Uf"] = depth.spread("all") / info.u_f
+            row["depth_asymmetry"] = depth.asymmetry()
     return row, profile
 
 
@@ -173,6 +185,8 @@ def _quantities(rows: list[dict], height: float) -> list[tuple[str, str]]:
         ("bubble_fraction", "bubble fraction below 0.8 H_bed"),
         ("q2_bed/Uf2", r"$q_p^2/U_f^2$ in the bed"),
         ("bottom_support/W", "weight on the bottom by contact / W"),
+        ("depth_spread/Uf", "spread of U_p,z across the depth / U_f, z/H = 0.16"),
+        ("depth_asymmetry", "solid (front - back)/(front + back), z/H = 0.16"),
     ]
     return [(q, lab) for q, lab in quantities if any(math.isfinite(r[q]) for r in rows)]
 

@@ -173,6 +173,7 @@ def average_fields(
     box: tuple | None = None,
     snapshots: list[tuple[float, Path]] | None = None,
     bubble_alpha: float = BUBBLE_ALPHA,
+    visitors: tuple = (),
 ) -> AveragedFields:
     """Time-averaged (over `window`, s; default the last half) depth-averaged particle fields of a run.
 
@@ -185,6 +186,8 @@ def average_fields(
         box: ((xmin, ymin, zmin), (xmax, ymax, zmax)) to override the domain box.
         snapshots: (t, path) list to use instead of the run's particle output (tests).
         bubble_alpha: bins below this instantaneous α_p count as bubble (`bubble_frequency`).
+        visitors: objects whose `add(arrays)` sees every snapshot read (e.g. `febed.post.depth.DepthProfile`),
+            so that other averages take no second pass over the files.
     """
     info = run_info(run_dir, box)
     snaps = snapshots if snapshots is not None else list_snapshots(run_dir)
@@ -197,6 +200,8 @@ def average_fields(
         if a is None:
             continue
         acc.add(t, bin_sums(grid, a["pos"], a["velocity"], a["diameter"], kernel))
+        for v in visitors:
+            v.add(a)
         vol += float((np.pi / 6.0 * a["diameter"] ** 3).sum())
     if acc.count == 0:
         raise ValueError(f"window {window}: none of the {len(chosen)} snapshots could be read")

@@ -128,3 +128,23 @@ def snapshot_maps(grid, info, frames: list[tuple[float, np.ndarray]], path: Path
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def depth_plot(depth, name: str, path: Path) -> Path:
+    """The vertical particle velocity across the depth at one height, per band of the width (seed 001 Fig 11)."""
+    from febed.post.depth import BANDS
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(4.5, 3.5))
+    labels = {"all": "whole width", "centre": "central third", "walls": "outer 15 % (side walls)"}
+    for b in BANDS:
+        ax.plot(depth.y_over_d, depth.velocity(b) / depth.info.u_f, marker="o", ms=3, label=labels[b])
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set(xlabel="y/D", ylabel=r"$\overline{U_{p,z}}/U_f$", xlim=(0, 1))
+    z0, z1 = (np.asarray(depth.slab) - depth.info.lo[2]) / depth.info.height
+    ax.set_title(f"{name}: across the depth, z/H = {z0:.3f}-{z1:.3f}, {depth.snapshots} snapshots", fontsize=8)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

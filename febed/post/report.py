@@ -6,6 +6,10 @@ Files written (x/L, z/H, q_p²/U_f², flux/ρU_f, t/(d_p/U_f): seed 001 §4 scal
     fields.csv                    one row per bin: x, z, x/L, z/H, alpha_p, flux x/z (and / ρU_f), U_p, q2,
                                   bubble frequency (share of the snapshots with α_p < bubble_alpha)
     profile_zH<h>.csv             horizontal profiles at z/H = h (default 0.092, seed 001 Figs 13, 18)
+    depth_zH<h>.csv               3D runs: the vertical particle velocity across the depth at z/H = h
+                                  (default 0.16, seed 001 Fig 11), whole width, centre and walls
+                                  (febed.post.depth); summary.csv: each profile's spread (max - min) / U_f
+                                  and the front/back asymmetry of the solid there
     timeseries.csv                t, t/(d_p/U_f), dp_bed, dp_bed/(W/A), bed_height, bed_height/H
     summary.csv                   key, value: window, snapshots, means of dp_bed and bed height, W/A, ...
                                   bed_flux_centre/walls/rhoUf: vertical solid flux averaged over the bed's
@@ -15,7 +19,8 @@ Files written (x/L, z/H, q_p²/U_f², flux/ρU_f, t/(d_p/U_f): seed 001 §4 scal
                                   q2_bed/Uf2: the solid-volume-weighted agitation energy below the bed height;
                                   bottom_support/W: the share of the bed weight the bottom wall carries by
                                   contact (febed.post.support), which dp_bed/(W/A) then lacks
-    fields.png, profile_zH<h>.png, timeseries.png, snapshots.png (instantaneous 1 - α_p, seed 001 Fig 15)
+    fields.png, profile_zH<h>.png, depth_zH<h>.png, timeseries.png, snapshots.png (instantaneous 1 - α_p,
+    seed 001 Fig 15)
 """
 
 from __future__ import annotations
@@ -27,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from febed.post.fields import AveragedFields, average_fields
+from febed.post.depth import BANDS, DEPTH_HEIGHT, DepthProfile, default_depth_bins
+from febed.post.fields import AveragedFields, average_fields, default_bins, make_grid
 from febed.post.grid import BUBBLE_ALPHA
 from febed.post.rundata import list_snapshots, run_info
 from febed.post.series import SeriesSummary, read_series, summarize, weight_per_area
@@ -89,6 +95,8 @@ def post_run(
     figures: bool = True,
     out: str | Path | None = None,
     bubble_alpha: float = BUBBLE_ALPHA,
+    depth_height: float | None = DEPTH_HEIGHT,
+    depth_bins: int | None = None,
 ) -> PostResult:
     """Post-process a run folder into `out` (default RUN_DIR/post): see the module docstring.
 
@@ -102,6 +110,8 @@ def post_run(
         figures: write the PNG figures.
         out: output folder.
         bubble_alpha: a bin below this instantaneous α_p is bubble (bubble_frequency, bubble_fraction).
+        depth_height: z/H of the profile across the depth (3D runs; None: none).
+        depth_bins: bins across the depth (default the built-in mesh's cells across it).
     """
     run_dir = Path(run_dir)
     info = run_info(run_dir)
@@ -119,8 +129,13 @@ def post_run(
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
     avg = None
+    depth = None
     if snaps:
-        avg = average_fields(run_dir, window, bins, kernel, agitation, bubble_alpha=bubble_alpha)
+        grid = make_grid(info, bins or default_bins(run_dir, info))
+        if depth_height is not None and info.dim == 3:
+            depth = DepthProfile(info, grid, depth_bins or default_depth_bins(run_dir, info), depth_height)
+        visitors = (depth,) if depth is not None else ()
+        avg = average_fields(run_dir, window, grid.n, kernel, agitation, bubble_alpha=bubble_alpha, visitors=visitors)
         window = avg.window
         np.savez(
             out / "fields.npz",
@@ -182,6 +197,8 @@ def post_run(
                         out / f"{name}.png",
                     )
                 )
+        if depth is not None:
+            files += _depth_files(depth, run_dir.name, out, figures, values)
         if figures:
             from febed.post.figures import field_maps, snapshot_maps
             from febed.post.grid import bin_sums
@@ -213,3 +230,21 @@ def post_run(
             files.append(series_plot(series, summary, info, out / "timeseries.png"))
     files.append(_write_csv(out / "summary.csv", ["key", "value"], values.items()))
     return PostResult(fields=avg, summary=summary, files=files, values=values)
+
+
+def _depth_files(depth: DepthProfile, name: str, out: Path, figures: bool, values: dict) -> list[Path]:
+    """depth_zH<h>.csv (+ .png) of a `DepthProfile`; its spreads / U_f go into `values`."""
+    u_f = depth.info.u_f
+    stem = f"depth_zH{depth.height:g}"
+    y = depth.info.lo[1] + depth.y_over_d * depth.info.depth
+    cols = [y, depth.y_over_d, *(depth.velocity(b) / u_f for b in BANDS), depth.share("all")]
+    header = ["y", "y/D", *(f"U_pz/Uf_{b}" for b in BANDS), "solid_share_all"]
+    files = [_write_csv(out / f"{stem}.csv", header, ([float(v) for v in r] for r in zip(*cols, strict=True)))]
+    for b in BANDS:
+        values[f"{stem}_spread_{b}/Uf"] = depth.spread(b) / u_f
+    values[f"{stem}_front_back_asymmetry"] = depth.asymmetry()
+    if figures:
+        from febed.post.figures import depth_plot
+
+        files.append(depth_plot(depth, name, out / f"{stem}.png"))
+    return files
