@@ -95,3 +95,15 @@ def test_c1_with_slipping_front_and_back_walls_force_balance(c1_slip_front_back)
     held = v["dp_bed_over_weight"] + v["bottom_support/W"]
     assert abs(held - 1.0) < 0.03, (v["dp_bed_over_weight"], v["bottom_support/W"])
     assert v["bottom_support/W"] > 0.05  # the heap on the patch
+
+
+@pytest.mark.slow
+def test_c1_with_slipping_front_and_back_walls_is_two_dimensional(c1_slip_front_back):
+    """Seed 001's depth averaging assumes a bed that hardly varies across the depth (its Fig 11, for C2): with
+    the front and back walls slipping C1 is such a bed (measured over 1.0-2.5 s: U_p,z spread 0.001 U_f over
+    the width, 0.007 U_f at the side walls, solid asymmetry 0.000), where C1 with no-slip walls circulates
+    across the depth (0.099 and 0.227 U_f) or, at converged gas steps, splits (asymmetry 0.36-0.40)."""
+    v = c1_slip_front_back.values
+    assert v["depth_zH0.16_spread_all/Uf"] < 0.03, v["depth_zH0.16_spread_all/Uf"]
+    assert v["depth_zH0.16_spread_walls/Uf"] < 0.05, v["depth_zH0.16_spread_walls/Uf"]
+    assert abs(v["depth_zH0.16_front_back_asymmetry"]) < 0.05, v["depth_zH0.16_front_back_asymmetry"]
