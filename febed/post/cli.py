@@ -212,7 +212,7 @@ def cmd_compare(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m febed.post`: `RUN_DIR [options]` or `study STUDY.toml [options]`."""
+    """`python -m febed.post`: `RUN_DIR [options]`, `study STUDY.toml [options]` or `compare RUN_DIR ...`."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="python -m febed.post")
     sub = parser.add_subparsers(dest="command", required=True)

@@ -133,7 +133,8 @@ def post_run(
     if snaps:
         grid = make_grid(info, bins or default_bins(run_dir, info))
         if depth_height is not None and info.dim == 3:
-            depth = DepthProfile(info, grid, depth_bins or default_depth_bins(run_dir, info), depth_height)
+            ny = depth_bins if depth_bins is not None else default_depth_bins(run_dir, info)
+            depth = DepthProfile(info, grid, ny, depth_height)
         visitors = (depth,) if depth is not None else ()
         avg = average_fields(run_dir, window, grid.n, kernel, agitation, bubble_alpha=bubble_alpha, visitors=visitors)
         window = avg.window

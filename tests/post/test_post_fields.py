@@ -482,6 +482,8 @@ def test_depth_profile_solid_volume_weighted_per_band_exact(tmp_path):
         DepthProfile(dataclasses.replace(info, dim=2), grid, 3)
     with pytest.raises(ValueError, match="depth bins"):
         DepthProfile(info, grid, 0)
+    with pytest.raises(ValueError, match="depth bins"):  # what `febed post --depth-bins 0` gets
+        post_run(run, window=(0.0, 0.1), bins=BINS, depth_bins=0, figures=False, out=tmp_path / "p0")
     with pytest.raises(ValueError, match="z/H"):
         DepthProfile(info, grid, 3, height=1.5)
     assert np.isnan(DepthProfile(info, grid, 3).spread())  # nothing added: no profile
