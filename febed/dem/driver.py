@@ -424,6 +424,6 @@ def _log_balance(dem: DEM, log) -> None:
         return
     from febed.parallel.exchange import balance_line
 
-    total, _, ghosts = dem.exchange.counts(dem.particles)
+    total, ghosts = dem.exchange.counts(dem.particles)
     line = balance_line(dem.exchange.comm, dem.particles.n_owned, dem.pairs.size)
     log.info(f"{line}; {total} particles, {ghosts} ghosts")

@@ -361,12 +361,10 @@ class ParticleExchange:
         self.timers["update"] += time.perf_counter() - t0
         return float(red[1]) if local_max is not None else None
 
-    def counts(self, particles) -> tuple[int, float, int]:
-        """(total, max/mean imbalance, ghosts total) of the owned particles over ranks (collective)."""
-        c = np.array(self.comm.allgather((particles.n_owned, particles.n_ghost)))
-        total = int(c[:, 0].sum())
-        mean = total / self.size
-        return total, (float(c[:, 0].max()) / mean if mean > 0 else 1.0), int(c[:, 1].sum())
+    def counts(self, particles) -> tuple[int, int]:
+        """(owned, ghosts) particles summed over ranks (collective); `balance_line` gives the imbalance."""
+        c = self.comm.allreduce(np.array([particles.n_owned, particles.n_ghost], dtype=np.int64))
+        return int(c[0]), int(c[1])
 
 
 def balance_line(comm, owned: int, pairs: int) -> str:

@@ -36,6 +36,11 @@ NUMBERS = (
 )  # fmt: skip
 
 
+def _empty_numbers() -> dict:
+    """The row of a run without data: NaN everywhere, no snapshots."""
+    return {**{k: math.nan for k in NUMBERS}, "snapshots": 0}
+
+
 def run_row(directory, window=None, fields: bool = True, height: float = 0.092) -> tuple[dict, tuple | None]:
     """The comparison's numbers of one run folder (NaN where it has no data) and its flux profile (x/L, flux/ρU_f).
 
@@ -44,8 +49,7 @@ def run_row(directory, window=None, fields: bool = True, height: float = 0.092) 
     from febed.study import read_status
 
     nan = math.nan
-    row = {k: nan for k in NUMBERS}
-    row["snapshots"] = 0
+    row = _empty_numbers()
     try:
         info = run_info(directory)
     except ValueError:
@@ -120,8 +124,7 @@ def _member_row(study, m, state: str, fields: bool, height: float) -> tuple[dict
     row = {"member": m.name, "state": state}
     row.update({k: m.values.get(k, "") for k in study.parameters})
     if state == "new":
-        numbers, profile = {k: math.nan for k in NUMBERS}, None
-        numbers["snapshots"] = 0
+        numbers, profile = _empty_numbers(), None
     else:
         numbers, profile = run_row(m.directory, study.window, fields, height)
     return {**row, **numbers}, profile
