@@ -2,7 +2,8 @@
 
 Run serially or with `mpirun -n 2`. Prints wall time per simulated second and its split DEM / coupling /
 gas / output (max over ranks) and, on several ranks, the particle exchange's share of the DEM time, the
-particle load per rank at the end and its max/mean sampled every 0.01 s of the window, after a warm-up that compiles the kernels and lets the inlet ramp start.
+particle load per rank at the end and its max/mean sampled every 0.01 s of the window, after a warm-up
+that compiles the kernels and lets the inlet ramp start.
 The packed 75 g bed of demos/pseudo2d is made on first use (several minutes) and reused.
 
     [mpirun -n 2] python benchmarks/coupled_pseudo2d.py [--sim-time 0.01] [--case demos/pseudo2d/C2.toml]
@@ -86,10 +87,8 @@ if comm.rank == 0:
     for k, v in split.items():
         print(f"  {k:9s} {v / sim / 60:7.2f} min per simulated s ({100 * v / (t2 - t1):4.1f} %)")
     if comm.size > 1:
-        print(
-            f"  particles max/mean over {len(imbalance)} samples of the window: mean {sum(imbalance) / len(imbalance):.3f},"
-            f" max {max(imbalance):.3f}"
-        )
+        mean, worst = sum(imbalance) / len(imbalance), max(imbalance)
+        print(f"  particles max/mean over {len(imbalance)} samples of the window: mean {mean:.3f}, max {worst:.3f}")
         print(f"  particle exchange (in the DEM time): {exchange / sim / 60:.2f} min per simulated s")
         for k, (lo, hi) in ex_split.items():  # the rank that waits least shows the cost of the messages alone
             print(f"    {k:9s} {lo / sim / 60:5.2f} - {hi / sim / 60:5.2f} min per simulated s (min - max over ranks)")
