@@ -58,7 +58,7 @@ before = s.timers.as_dict()
 ex = s.dem.exchange
 ex_before = dict(ex.timers) if ex is not None else {}
 sim0 = s.t
-imbalance = []  # max/mean particles per rank, sampled every 0.01 s of the window (one sample per 0.01 s)
+imbalance = []  # max/mean particles per rank, sampled every 0.01 s of the window
 while s.t < sim0 + args.sim_time - 1e-12:
     run.advance_to(min(s.t + 0.01, sim0 + args.sim_time))
     n = comm.allgather(s.dem.particles.n_owned)
