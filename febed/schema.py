@@ -452,6 +452,16 @@ BOUNDARY: dict[str, Param] = {
         choices=("x", "y", "z"),
         item=str,
     ),
+    "slip_length": Param(
+        None,
+        "m",
+        "wall with slip: Navier slip length; the gas feels the shear eps mu_eff u_t / slip_length along the wall "
+        "(partial slip; unset = free slip). ~3e-5 m, the Brinkman length of a packed bed of 1 mm beads, lets "
+        "the bed's gas flow along the wall and brakes the gas of bubbles",
+        float,
+        lo=0.0,
+        lo_open=True,
+    ),
     "pressure": Param(0.0, "Pa", "outlet: dynamic pressure", float),
     "particles": Param(True, "-", "wall: particles collide with these facets (outlet: particles leave)", bool),
 }

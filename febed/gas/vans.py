@@ -264,6 +264,7 @@ class VANSSolver:
                 pressure=d.get("pressure", 0.0),
                 cross_section_tags=tuple(d.get("cross_section_tags", ()) or ()),
                 slip_normals=tuple(d.get("slip_normals", ()) or ()),
+                slip_length=d.get("slip_length"),
             )
         apply_petsc_options(g.petsc_options)
         params = VANSParameters(
@@ -476,6 +477,8 @@ class VANSSolver:
         clock["inputs"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
+        n = self.n_local  # partial-slip walls: their shear is implicit like the drag (febed.gas.boundary)
+        K = self.bc.wall_friction(K, self.eps * self._viscosity()[:n], self.ops.mass[:n])
         q_star = self._predict(dt, eps_old, K, Kv, force)
         clock["predictor"] = time.perf_counter() - t0
 
