@@ -456,8 +456,8 @@ BOUNDARY: dict[str, Param] = {
         None,
         "m",
         "wall with slip: Navier slip length; the gas feels the shear eps mu_eff u_t / slip_length along the wall "
-        "(partial slip; unset = free slip). ~3e-5 m, the Brinkman length of a packed bed of 1 mm beads, lets "
-        "the bed's gas flow along the wall and brakes the gas of bubbles",
+        "(partial slip; unset = free slip; must be > 0). Small values approach no-slip; "
+        "demos/pseudo2d/C1-partial-slip-front-back.toml uses one particle diameter",
         float,
         lo=0.0,
         lo_open=True,

@@ -156,3 +156,13 @@ def test_slip_normals_axes_and_their_wall(tmp_path):
     assert got == ["[gas.boundary.walls] slip_normals needs type = 'wall' and slip = true"]
     case = load_case(write(tmp_path, BASE), ["gas.boundary.walls.slip=true", 'gas.boundary.walls.slip_normals=["x"]'])
     assert case.boundary["walls"].slip_normals == ["x"]
+
+
+def test_slip_length_positive_and_on_a_slipping_wall(tmp_path):
+    """slip_length: > 0 m (schema bound), and only on a slipping wall (cross-check)."""
+    got = problems(tmp_path, BASE, ["gas.boundary.walls.slip=true", "gas.boundary.walls.slip_length=0"])
+    assert len(got) == 1 and got[0].startswith("[gas.boundary.walls] slip_length = 0"), got
+    got = problems(tmp_path, BASE, ["gas.boundary.walls.slip_length=1e-3"])
+    assert got == ["[gas.boundary.walls] slip_length needs type = 'wall' and slip = true"]
+    case = load_case(write(tmp_path, BASE), ["gas.boundary.walls.slip=true", "gas.boundary.walls.slip_length=1e-3"])
+    assert case.boundary["walls"].slip_length == 1e-3

@@ -17,10 +17,10 @@ Each named facet tag gets a `BoundarySpec`:
   volume-averaged equations (their viscous flux is ε μ_eff ∇u) acts on the lumped wall area a_i = ∫φ_i ds
   of the partial-slip facets and is implicit in the predictor, like the drag: the coefficient
   ε_i μ_eff,i a_i/(λ ΔV_i) [kg/(m^3 s)] is added to K_i (`NodalBoundary.wall_friction`).
-  Why: on a coarse mesh a no-slip node holds the gas still over a whole cell, while the wall layer of a
-  packed bed is only as thick as the Brinkman length √k (k the Ergun permeability, ~0.03 mm for 1 mm beads
-  at ε = 0.4); a slip length of that size lets the gas at the wall node flow through the bed as the
-  interior does and still brakes the gas-only flow of bubbles.
+  Why: on a coarse mesh a no-slip node holds the gas still over a whole cell, as if the wall layer were a
+  cell thick. A slip length lets the gas at the wall node move and still feel a wall shear. In seed 001's
+  C1 (coarse mesh, front/back walls) λ = 1 mm, one particle diameter, keeps the bed bubbling; λ = 3.4e-5 m,
+  the packed bed's Brinkman length, throttles it again (`demos/pseudo2d/C1-partial-slip-front-back.toml`).
 * `outlet` — pressure `pressure` [Pa] (Dirichlet for p, zero increment); the velocity is free, except that
   gas flowing back in is braked (backflow stabilisation, `VANSParameters.backflow`, see `febed.gas.vans`).
 * `symmetry` — zero normal velocity, like a slip wall.
@@ -72,8 +72,8 @@ class BoundarySpec:
             if not (self.type == "wall" and self.slip):
                 raise ValueError(f"boundary {name!r}: slip_length needs type = 'wall' with slip = true")
             if not self.slip_length > 0.0:
-                raise ValueError(f"boundary {name!r}: slip_length must be > 0 m (omit it for a free slip), "
-                                 f"got {self.slip_length!r}")
+                msg = f"slip_length must be > 0 m (omit it for a free slip), got {self.slip_length!r}"
+                raise ValueError(f"boundary {name!r}: {msg}")
         if self.ramp_time < 0.0:
             raise ValueError(f"boundary {name!r}: ramp_time must be >= 0 s, got {self.ramp_time}")
 
@@ -140,9 +140,10 @@ class NodalBoundary:
         self.slip = np.setdiff1d(np.unique(np.concatenate(slip)), taken) if slip else empty
         # slip projector per node: remove every direction in which the adjacent slip facets have a
         # significant normal (one on a flat wall; all at a 2D corner; two along a 3D edge)
+        # (the assemblies below are collective: every rank takes part, whether or not it has slip nodes)
         self.slip_proj = np.zeros((self.slip.size, ops.gdim, ops.gdim))
-        if self.slip.size:
-            names = [n for n, s in specs.items() if s.type == "symmetry" or (s.type == "wall" and s.slip)]
+        names = [n for n, s in specs.items() if s.type == "symmetry" or (s.type == "wall" and s.slip)]
+        if names:
             nn = normal_tensor_weights(mesh_data, Q, names)[self.slip]
             w, vec = np.linalg.eigh(nn)
             keep = w < 0.2 * w[:, -1:]
@@ -150,11 +151,16 @@ class NodalBoundary:
         # partial slip: per slip node, Σ over the tags with a slip length of ∫φ_i ds / λ [m]
         self.friction_nodes, self.friction_area = empty, np.empty(0)
         partial = [(n, s) for n, s in specs.items() if s.type == "wall" and s.slip and s.slip_length is not None]
-        if partial and self.slip.size:
-            a = sum(np.trace(normal_tensor_weights(mesh_data, Q, [n]), axis1=1, axis2=2) / s.slip_length
-                    for n, s in partial)[self.slip]
+        if partial:
+
+            def wall_area(tag):  # ∫φ_i ds over the tag's facets: the trace of ∫φ_i n⊗n ds (n·n = 1)
+                return np.trace(normal_tensor_weights(mesh_data, Q, [tag]), axis1=1, axis2=2)
+
+            a = sum(wall_area(n) / s.slip_length for n, s in partial)[self.slip]
             sel = a > 0.0
             self.friction_nodes, self.friction_area = self.slip[sel], a[sel]
+        # the same on every rank, so that the caller's collective work for the shear (μ_eff) is too
+        self.has_wall_friction = comm.allreduce(self.friction_nodes.size, op=MPI.SUM) > 0
         outs = [(dofs[n], s.pressure) for n, s in specs.items() if s.type == "outlet"]
         self.pressure_dofs = np.unique(np.concatenate([d for d, _ in outs])) if outs else empty
         self.pressure_values = np.zeros(self.pressure_dofs.size)

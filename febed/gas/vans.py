@@ -32,6 +32,10 @@ Model choices (and why):
   β ρ/2 min(u·n, 0) u, which removes at least the convective energy influx for β ≥ 1 and is zero where
   gas leaves. At a node it is the force −c_i u_i, c_i = β ρ/2 max(−q_i·B_i, 0)/ΔV_i (B_i = ∫φ_i n ds),
   evaluated with q^n and added to the implicit diagonal like K (`backflow` = β, default 1; 0 = off).
+* **Partial-slip walls** (`BoundarySpec.slip_length` λ): the Navier wall shear ε μ_eff u_t/λ on the lumped
+  wall area a_i is the force −c_i u_i, c_i = ε_i μ_eff,i a_i/(λ ΔV_i), added to the implicit diagonal like K
+  (so also to the pressure passes' and the drag-weighted projection's factor 1 + D_i); the normal velocity
+  is removed as for a free slip (`febed.gas.boundary`).
 * **Pressure** (seed 001 eqs 37-39, YALES2 form): the gas carries the full −∇P, so without drag the Poisson
   operator is the constant Laplacian L (with drag L_w, below); with φ = Δt δP/ρ,
   L φ = −(Dq* + ΔV (ε^{n+1} − ε^n)/Δt), D the Galerkin divergence. It includes the ∂ε/∂t source so that
@@ -477,8 +481,9 @@ class VANSSolver:
         clock["inputs"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        n = self.n_local  # partial-slip walls: their shear is implicit like the drag (febed.gas.boundary)
-        K = self.bc.wall_friction(K, self.eps * self._viscosity()[:n], self.ops.mass[:n])
+        if self.bc.has_wall_friction:  # partial-slip walls: their shear is implicit like the drag (gas.boundary)
+            n = self.n_local
+            K = self.bc.wall_friction(K, self.eps * self._viscosity()[:n], self.ops.mass[:n])
         q_star = self._predict(dt, eps_old, K, Kv, force)
         clock["predictor"] = time.perf_counter() - t0
 
