@@ -1,7 +1,8 @@
 """Seed 001 C1 (slow): a short run of the pseudo-2D bed circulates solid up the centre, down the walls.
 
 C1 as Table 3 gives it (every gas wall no-slip) and C1 with its front and back walls slipping
-(`C1-slip-front-back.toml`, session 8: the coarse mesh's no-slip front/back walls keep the bed from bubbling).
+(`C1-slip-front-back.toml`, session 8: the coarse mesh's no-slip front/back walls keep the bed from bubbling),
+or with Navier partial slip there (`C1-partial-slip-front-back.toml`, session 14).
 
 `FEBED_C1_END` sets the simulated time (default 3 s; the last 2/3 are averaged). On a 2-core machine the
 75 g bed (57,296 particles) runs at 10-20 min per simulated second: this is a `make test-all` test.
@@ -107,3 +108,34 @@ def test_c1_with_slipping_front_and_back_walls_is_two_dimensional(c1_slip_front_
     assert v["depth_zH0.16_spread_all/Uf"] < 0.03, v["depth_zH0.16_spread_all/Uf"]
     assert v["depth_zH0.16_spread_walls/Uf"] < 0.05, v["depth_zH0.16_spread_walls/Uf"]
     assert abs(v["depth_zH0.16_front_back_asymmetry"]) < 0.05, v["depth_zH0.16_front_back_asymmetry"]
+
+
+@pytest.fixture(scope="module")
+def c1_partial_slip_front_back(tmp_path_factory):
+    return _run(tmp_path_factory, "C1-partial-slip-front-back")
+
+
+@pytest.mark.slow
+def test_c1_with_partial_slip_front_and_back_walls_circulates_seed_001s_way(c1_partial_slip_front_back):
+    """Navier partial slip (slip length 1 mm) on the front and back walls, side walls no-slip (session 14): the
+    bed bubbles, stays two-dimensional and turns seed 001's way, and the walls' shear carries part of the
+    weight that free slip leaves to the pressure drop alone (measured over 1-3 s: +53 / -67 rho U_f,
+    bubble fraction 0.248, spreads 0.004 / 0.004 U_f, dp 0.932 W + bottom 0.092 W = 1.024)."""
+    v = c1_partial_slip_front_back.values
+    centre, walls = v["bed_flux_centre/rhoUf"], v["bed_flux_walls/rhoUf"]
+    assert centre > 0.0 > walls, (centre, walls)
+    assert v["bubble_fraction"] > 0.1, v["bubble_fraction"]
+    assert v["depth_zH0.16_spread_all/Uf"] < 0.03, v["depth_zH0.16_spread_all/Uf"]
+    held = v["dp_bed_over_weight"] + v["bottom_support/W"]
+    assert 0.99 <= held < 1.06, (v["dp_bed_over_weight"], v["bottom_support/W"])  # + the walls' shear
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="with partial slip (1 mm) on the front and back walls the gas carries 0.932 of the bed weight over "
+    "1-3 s (0.905 with free slip): the bottom still holds 0.092 by contact, the heap on the coarse patch; "
+    "demos/pseudo2d/README.md",
+)
+def test_c1_with_partial_slip_front_and_back_walls_pressure_drop(c1_partial_slip_front_back):
+    assert abs(c1_partial_slip_front_back.values["dp_bed_over_weight"] - 1.0) < 0.05

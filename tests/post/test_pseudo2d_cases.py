@@ -42,8 +42,18 @@ def test_c1_slip_front_back_is_c1_with_slipping_front_and_back_walls():
         assert getattr(v, sec).as_dict() == getattr(c, sec).as_dict(), sec
 
 
+def test_c1_partial_slip_front_back_is_the_slip_variant_with_a_slip_length():
+    v, p = load_case(DEMO / "C1-slip-front-back.toml"), load_case(DEMO / "C1-partial-slip-front-back.toml")
+    assert v.boundary["walls"].slip_length is None and p.boundary["walls"].slip_length == 1e-3
+    assert p.boundary["walls"].slip and p.boundary["walls"].slip_normals == ["y"]
+    members = {m.name: m for m in load_study(DEMO / "study-walls.toml").members}
+    assert "gas.boundary.walls.slip_length=0.001" in members["C1-partial-slip-front-back"].overrides
+    for sec in ("particles", "contact", "mesh", "coupling"):
+        assert getattr(v, sec).as_dict() == getattr(p, sec).as_dict(), sec
+
+
 def test_studies_load():
-    sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13, "walls": 5}
+    sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13, "walls": 6}
     for name, n in sizes.items():
         s = load_study(DEMO / f"study-{name}.toml")
         assert len(s.members) == n
