@@ -497,9 +497,10 @@ def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
     run_to_end(run, case.run.end_time)
     t = s.timers
     total = t.dem + t.coupling + t.gas + t.output
+    left = comm.allreduce(s.left_outlet)  # each rank counts its own (probes.csv has the same total)
     log.info(
         f"done: {s.steps} gas steps to t = {s.t:.5f} s in {total:.1f} s "
         f"(DEM {t.dem:.1f} s, coupling {t.coupling:.1f} s, gas {t.gas:.1f} s, output {t.output:.1f} s); "
-        f"{s.left_outlet} particles left through the outlet; probes in {run.outdir / 'probes.csv'}"
+        f"{left} particles left through the outlet; probes in {run.outdir / 'probes.csv'}"
     )
     return run
