@@ -463,7 +463,14 @@ BOUNDARY: dict[str, Param] = {
         lo_open=True,
     ),
     "pressure": Param(0.0, "Pa", "outlet: dynamic pressure", float),
-    "particles": Param(True, "-", "wall: particles collide with these facets (outlet: particles leave)", bool),
+    "particles": Param(
+        True,
+        "-",
+        "wall or inlet: particles collide with these facets (false: nothing holds them, and a particle crossing "
+        "them stops the run); outlet: particles leave through it and are counted (false: a lid for the "
+        "particles, which bounce off it as off a wall while the gas still flows out)",
+        bool,
+    ),
 }
 
 

@@ -60,3 +60,10 @@ def test_studies_load():
     t3 = {m.name: m for m in load_study(DEMO / "study-table3.toml").members}
     assert "gas.boundary.inlet.velocity=1.71" in t3["C6"].overrides
     assert "particles.bed_mass=0.125" in t3["C7"].overrides
+    assert "gas.boundary.outlet.particles=false" in t3["C7"].overrides  # the lid of C7.toml
+
+
+def test_c7_outlet_is_closed_to_the_particles():
+    """C7's start-up slug reaches the outlet: its particles bounce off it; the 75 g cases keep it open."""
+    assert load_case(DEMO / "C7.toml").boundary["outlet"].particles is False
+    assert load_case(DEMO / "C2.toml").boundary["outlet"].particles is True
