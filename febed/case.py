@@ -320,6 +320,16 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
             problems.append(f"[gas.boundary.{tag}] slip_normals needs type = 'wall' and slip = true")
         if b.as_dict().get("slip_length") is not None and not (b.type == "wall" and b.slip):
             problems.append(f"[gas.boundary.{tag}] slip_length needs type = 'wall' and slip = true")
+        for w in b.as_dict().get("wins_over") or ():
+            if b.type != "inlet":
+                problems.append(f"[gas.boundary.{tag}] wins_over is for an inlet (type = 'inlet')")
+                break
+            other = case.boundary.get(w)
+            if other is not None and not (other.type == "wall" and not other.slip):
+                problems.append(
+                    f"[gas.boundary.{tag}] wins_over = {w!r}: [gas.boundary.{w}] must be a no-slip wall "
+                    "(type = 'wall', slip = false)"
+                )
     from febed.coarse.setup import check_case
 
     problems += check_case(case)

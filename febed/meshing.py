@@ -492,6 +492,9 @@ def load_case_mesh(case, comm=MPI.COMM_WORLD, cache_dir: Path | None = None) -> 
             raise MeshError(f"[mesh] builtin = {m.builtin!r}: {err}")
         md = load_msh(path, comm)
     md.require_tags(list(case.boundary), "[gas.boundary.*]")
+    for tag, b in case.boundary.items():  # the keys that name other tags
+        for key in ("cross_section_tags", "wins_over"):
+            md.require_tags(list(b.as_dict().get(key) or ()), f"[gas.boundary.{tag}] {key}")
     return md
 
 

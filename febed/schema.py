@@ -441,6 +441,14 @@ BOUNDARY: dict[str, Param] = {
         list,
         item=str,
     ),
+    "wins_over": Param(
+        [],
+        "-",
+        "inlet: no-slip wall tags whose nodes on the inlet's edge take the inlet's velocity (default none: "
+        "no-slip wins where they meet); e.g. ['bottom_wall'] narrows a patch's gas-free strip by one cell",
+        list,
+        item=str,
+    ),
     "ramp_time": Param(0.0, "s", "inlet: ramp the velocity linearly from 0 over this time", float, lo=0.0),
     "slip": Param(False, "-", "wall: slip (true) or no-slip (false) for the gas", bool),
     "slip_normals": Param(

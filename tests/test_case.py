@@ -166,3 +166,16 @@ def test_slip_length_positive_and_on_a_slipping_wall(tmp_path):
     assert got == ["[gas.boundary.walls] slip_length needs type = 'wall' and slip = true"]
     case = load_case(write(tmp_path, BASE), ["gas.boundary.walls.slip=true", "gas.boundary.walls.slip_length=1e-3"])
     assert case.boundary["walls"].slip_length == 1e-3
+
+
+def test_wins_over_on_an_inlet_over_a_no_slip_wall(tmp_path):
+    """wins_over: only an inlet's key, and the walls it names must be no-slip (cross-checks)."""
+    got = problems(tmp_path, BASE, ['gas.boundary.walls.wins_over=["inlet"]'])
+    assert got == ["[gas.boundary.walls] wins_over is for an inlet (type = 'inlet')"]
+    got = problems(tmp_path, BASE, ['gas.boundary.inlet.wins_over=["walls"]', "gas.boundary.walls.slip=true"])
+    assert got == [
+        "[gas.boundary.inlet] wins_over = 'walls': [gas.boundary.walls] must be a no-slip wall "
+        "(type = 'wall', slip = false)"
+    ]
+    case = load_case(write(tmp_path, BASE), ['gas.boundary.inlet.wins_over=["walls"]'])
+    assert case.boundary["inlet"].wins_over == ["walls"]

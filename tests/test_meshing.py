@@ -14,6 +14,7 @@ from febed.meshing import (
     build_msh,
     facet_area,
     global_cell_count,
+    load_case_mesh,
     load_msh,
     mesh_volume,
 )
@@ -96,6 +97,20 @@ def test_missing_tag_lists_available(seed_meshes):
     md = load_msh(seed_meshes["wang2d"])
     with pytest.raises(MeshError, match="mesh has: inlet, outlet, walls"):
         md.require_tags(["inlet", "distributor"])
+
+
+def test_case_mesh_checks_the_tags_a_boundary_names(tmp_path):
+    """cross_section_tags and wins_over name facet tags: a missing one is reported before anything runs."""
+    from febed.case import load_case
+
+    for key in ("cross_section_tags", "wins_over"):
+        data = {
+            "run": {"mode": "cfd-dem"},
+            "mesh": {"builtin": "wang2d"},
+            "gas": {"boundary": {"inlet": {"type": "inlet", "velocity": 0.9, key: ["nozzle"]}}},
+        }
+        with pytest.raises(MeshError, match=rf"\[gas.boundary.inlet\] {key} names facet tag\(s\) 'nozzle'"):
+            load_case_mesh(load_case(data=data), cache_dir=tmp_path)
 
 
 def test_bad_requests(tmp_path):

@@ -6,7 +6,13 @@ Each named facet tag gets a `BoundarySpec`:
   inward normal of the tag. The nodal superficial velocity q = ε u is scaled so that the discrete inflow
   Σ_j q_j·(−B_j) over the inlet nodes (B_j = ∫_∂Ω φ_j n ds) is exactly U_f A, whatever ε is there. A is the
   tag's area plus the areas of `cross_section_tags` (seed 001's bottom-wall patch: U_f is defined over
-  the whole cross-section, so the open part carries U_f A_total / A_open, DESIGN.md "Readings").
+  the whole cross-section, so the open part carries U_f A_total / A_open, DESIGN.md "Readings"). With
+  `wins_over` (no-slip wall tags) the nodes the inlet shares with those walls take the inlet's velocity
+  instead of no-slip (they stay no-slip if they also touch another no-slip wall).
+  Why: a node-based condition cannot give a wall patch exactly its cells: with no-slip at the patch's edge
+  nodes the inflow ramps from U to 0 over the cell beside the patch, so no gas is missing over the patch's
+  cells plus one; with the edge nodes the inlet's, the ramp lies inside the patch's edge cells, so the
+  patch's cells minus one. Seed 001's coarse patch of 3 cells is then 4 or 2 cells wide for the gas.
 * `wall` — no-slip (q = 0) or, with `slip`, zero normal velocity: at each node the directions of
   ∫ φ_i n⊗n ds with a significant weight are removed (so corners and edges are handled). With
   `slip_normals` (axes, e.g. ("y",)) only the tag's facets whose normal lies along those axes slip: a node
@@ -26,7 +32,8 @@ Each named facet tag gets a `BoundarySpec`:
 * `symmetry` — zero normal velocity, like a slip wall.
 
 Tags of the mesh that the specs do not name are no-slip walls. Where tags meet, a node takes the first of:
-no-slip wall, inlet, slip/symmetry, free. Pressure nodes are all the nodes of outlet facets.
+no-slip wall (but an inlet's `wins_over` walls yield to it), inlet, slip/symmetry, free. Pressure nodes are
+all the nodes of outlet facets.
 """
 
 from __future__ import annotations
@@ -56,6 +63,7 @@ class BoundarySpec:
     cross_section_tags: tuple[str, ...] = ()
     slip_normals: tuple[str, ...] = ()
     slip_length: float | None = None  # Navier slip length [m] of a slip wall; None: free slip
+    wins_over: tuple[str, ...] = ()  # inlet: no-slip wall tags whose nodes shared with it take its velocity
 
     def validate(self, name: str) -> None:
         """Raise ValueError naming the tag and the bad field."""
@@ -74,6 +82,8 @@ class BoundarySpec:
             if not self.slip_length > 0.0:
                 msg = f"slip_length must be > 0 m (omit it for a free slip), got {self.slip_length!r}"
                 raise ValueError(f"boundary {name!r}: {msg}")
+        if self.wins_over and self.type != "inlet":
+            raise ValueError(f"boundary {name!r}: wins_over is for an inlet (type = 'inlet'), not a {self.type}")
         if self.ramp_time < 0.0:
             raise ValueError(f"boundary {name!r}: ramp_time must be >= 0 s, got {self.ramp_time}")
 
@@ -103,6 +113,7 @@ class NodalBoundary:
         mesh_data.require_tags(list(specs), "the gas boundary conditions")
         for spec in specs.values():
             mesh_data.require_tags(list(spec.cross_section_tags), "an inlet's cross_section_tags")
+            mesh_data.require_tags(list(spec.wins_over), "an inlet's wins_over")
         Q, comm = ops.Q, mesh_data.comm
         self.comm = comm
         self.n_owned = ops.n_owned
@@ -110,7 +121,12 @@ class NodalBoundary:
         self.specs = specs
         dofs = {n: _dofs(mesh_data, Q, n) for n in specs}
         empty = np.empty(0, np.int32)
-        noslip = [dofs[n] for n, s in specs.items() if s.type == "wall" and not s.slip]
+        for n, s in specs.items():
+            for w in s.wins_over:
+                if not (specs[w].type == "wall" and not specs[w].slip):
+                    msg = f"wins_over {w!r} is not a no-slip wall (type = 'wall', slip = false)"
+                    raise ValueError(f"boundary {n!r}: {msg}")
+        noslip = [(n, dofs[n]) for n, s in specs.items() if s.type == "wall" and not s.slip]
         for n, s in specs.items():  # slip only on the facets normal to slip_normals: the other nodes stay no-slip
             if s.type == "wall" and s.slip and s.slip_normals:
                 keep = [AXES.index(a) for a in s.slip_normals]
@@ -119,8 +135,16 @@ class NodalBoundary:
                 other = [d for d in range(ops.gdim) if d not in keep]
                 nn = normal_tensor_weights(mesh_data, Q, [n])[dofs[n]]
                 weight = nn[:, other, other].sum(axis=1)  # Σ ∫φ_i n_d² ds over the other axes d
-                noslip.append(dofs[n][weight > 1e-9 * np.trace(nn, axis1=1, axis2=2)])
-        self.noslip = np.unique(np.concatenate(noslip)) if noslip else empty
+                noslip.append((n, dofs[n][weight > 1e-9 * np.trace(nn, axis1=1, axis2=2)]))
+        self.noslip = np.unique(np.concatenate([d for _, d in noslip])) if noslip else empty
+        for n, s in specs.items():  # an inlet's edge nodes on the walls it wins over: free for the inlet
+            if s.wins_over:
+                over = [d for w, d in noslip if w in s.wins_over]
+                others = [d for w, d in noslip if w not in s.wins_over]
+                edge = np.intersect1d(dofs[n], np.concatenate(over))
+                if others:
+                    edge = np.setdiff1d(edge, np.concatenate(others))
+                self.noslip = np.setdiff1d(self.noslip, edge)
         taken = self.noslip
         # inlets: nodes, inward normal, superficial speed factor A_total / A_open (discrete)
         self.inlets = []

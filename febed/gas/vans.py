@@ -269,6 +269,7 @@ class VANSSolver:
                 cross_section_tags=tuple(d.get("cross_section_tags", ()) or ()),
                 slip_normals=tuple(d.get("slip_normals", ()) or ()),
                 slip_length=d.get("slip_length"),
+                wins_over=tuple(d.get("wins_over", ()) or ()),
             )
         apply_petsc_options(g.petsc_options)
         params = VANSParameters(
