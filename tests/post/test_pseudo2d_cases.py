@@ -52,8 +52,19 @@ def test_c1_partial_slip_front_back_is_the_slip_variant_with_a_slip_length():
         assert getattr(v, sec).as_dict() == getattr(p, sec).as_dict(), sec
 
 
+def test_c1_partial_slip_edges_lets_every_wall_slip_and_the_inlet_take_the_patch_edges():
+    p, e = load_case(DEMO / "C1-partial-slip-front-back.toml"), load_case(DEMO / "C1-partial-slip-edges.toml")
+    assert e.boundary["walls"].slip and e.boundary["walls"].slip_normals == ["x", "y"]
+    assert e.boundary["walls"].slip_length == 1e-3 and e.boundary["inlet"].wins_over == ["bottom_wall"]
+    assert p.boundary["inlet"].wins_over == []
+    members = {m.name: m for m in load_study(DEMO / "study-walls.toml").members}
+    assert 'gas.boundary.inlet.wins_over=["bottom_wall"]' in members["C1-partial-slip-edges"].overrides
+    for sec in ("particles", "contact", "mesh", "coupling"):
+        assert getattr(p, sec).as_dict() == getattr(e, sec).as_dict(), sec
+
+
 def test_studies_load():
-    sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13, "walls": 6}
+    sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13, "walls": 7}
     for name, n in sizes.items():
         s = load_study(DEMO / f"study-{name}.toml")
         assert len(s.members) == n
