@@ -445,7 +445,7 @@ BOUNDARY: dict[str, Param] = {
         [],
         "-",
         "inlet: no-slip wall tags whose nodes on the inlet's edge take the inlet's velocity (default none: "
-        "no-slip wins where they meet); e.g. ['bottom_wall'] narrows a patch's gas-free strip by one cell",
+        "no-slip wins where they meet); e.g. ['bottom_wall'] narrows a patch's gas-free strip by two cells",
         list,
         item=str,
     ),
