@@ -318,6 +318,8 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
             problems.append(f"[gas.boundary.{tag}] type = 'inlet' needs velocity (superficial, m/s)")
         if b.as_dict().get("slip_normals") and not (b.type == "wall" and b.slip):  # the axes: schema choices
             problems.append(f"[gas.boundary.{tag}] slip_normals needs type = 'wall' and slip = true")
+        if b.as_dict().get("wall_law", "brinkman") != "brinkman" and not (b.type == "wall" and not b.slip):
+            problems.append(f"[gas.boundary.{tag}] wall_law is for a wall without slip (type = 'wall', slip = false)")
         if b.as_dict().get("slip_length") is not None and not (b.type == "wall" and b.slip):
             problems.append(f"[gas.boundary.{tag}] slip_length needs type = 'wall' and slip = true")
         for w in b.as_dict().get("wins_over") or ():

@@ -470,6 +470,15 @@ BOUNDARY: dict[str, Param] = {
         lo=0.0,
         lo_open=True,
     ),
+    "wall_law": Param(
+        "brinkman",
+        "-",
+        "wall without slip: 'brinkman' lets the wall nodes slide with the shear of the Brinkman layer of the "
+        "local drag (a packed bed's layer is far thinner than a cell; in clear gas it is no-slip), 'no_slip' "
+        "holds them at rest (the gas of half a cell then stands still at the wall, a first-order error in a bed)",
+        str,
+        choices=("brinkman", "no_slip"),
+    ),
     "pressure": Param(0.0, "Pa", "outlet: dynamic pressure", float),
     "particles": Param(
         True,

@@ -168,6 +168,17 @@ def test_slip_length_positive_and_on_a_slipping_wall(tmp_path):
     assert case.boundary["walls"].slip_length == 1e-3
 
 
+def test_wall_law_choices_and_its_wall(tmp_path):
+    """wall_law: 'brinkman' (default) or 'no_slip', and 'no_slip' only on a wall without slip (cross-check)."""
+    got = problems(tmp_path, BASE, ['gas.boundary.walls.wall_law="log"'])
+    assert got == ["[gas.boundary.walls] wall_law = 'log': expected one of 'brinkman', 'no_slip'"]
+    got = problems(tmp_path, BASE, ['gas.boundary.walls.wall_law="no_slip"', "gas.boundary.walls.slip=true"])
+    assert got == ["[gas.boundary.walls] wall_law is for a wall without slip (type = 'wall', slip = false)"]
+    case = load_case(write(tmp_path, BASE), ['gas.boundary.walls.wall_law="no_slip"'])
+    assert case.boundary["walls"].wall_law == "no_slip"
+    assert load_case(write(tmp_path, BASE)).boundary["walls"].wall_law == "brinkman"
+
+
 def test_wins_over_on_an_inlet_over_a_no_slip_wall(tmp_path):
     """wins_over: only an inlet's key, and the walls it names must be no-slip (cross-checks)."""
     got = problems(tmp_path, BASE, ['gas.boundary.walls.wins_over=["inlet"]'])

@@ -241,6 +241,7 @@ class VANSSolver:
         )  # fmt: skip
         self._weights = dolfinx.fem.Function(self.Q)  # 1/(1 + K Δt/(ρ ε)) of the step (drag-weighted projection)
         self._weighted = False  # this step's projection is drag-weighted (a drag K was given)
+        self._wall_c = None  # the walls' implicit shear coefficient of the step [kg/(m^3 s)] (None: no such walls)
         self._outlet_rows = self.bc.pressure_dofs[self.bc.pressure_dofs < self.n_owned]
         self._sqrt_n = np.sqrt(self.comm.allreduce(self.n_owned, op=MPI.SUM))
         self.phi = np.zeros(self.n_local)
@@ -270,6 +271,7 @@ class VANSSolver:
                 slip_normals=tuple(d.get("slip_normals", ()) or ()),
                 slip_length=d.get("slip_length"),
                 wins_over=tuple(d.get("wins_over", ()) or ()),
+                wall_law=d.get("wall_law", "brinkman"),
             )
         apply_petsc_options(g.petsc_options)
         params = VANSParameters(
@@ -482,9 +484,14 @@ class VANSSolver:
         clock["inputs"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        if self.bc.has_wall_friction:  # partial-slip walls: their shear is implicit like the drag (gas.boundary)
+        self._wall_c = None
+        if self.bc.has_wall_friction:  # wall-law and partial-slip walls: their shear is implicit like the drag
             n = self.n_local
-            K = self.bc.wall_friction(K, self.eps * self._viscosity()[:n], self.ops.mass[:n])
+            eps_mu = self.eps * self._viscosity()[:n]
+            if self.bc.has_inlet_corners:  # inlet corners slide as the wall-law walls beside them (gas.boundary)
+                self.bc.set_wall_state(K, eps_mu)
+            K_wall = self.bc.wall_friction(K, eps_mu, self.ops.mass[:n])
+            self._wall_c, K = K_wall - K, K_wall
         q_star = self._predict(dt, eps_old, K, Kv, force)
         clock["predictor"] = time.perf_counter() - t0
 
@@ -543,6 +550,8 @@ class VANSSolver:
             w[:n] = 1.0 / (1.0 + K[:n] * dt / (par.density * self.eps[:n]))
             self._weights.x.scatter_forward()
             self.pressure.set_weights(ops.extension.extend("w", self._weights.vector, w))
+        elif self._wall_c is not None:  # the walls' implicit shear also damps their nodes' correction
+            w[:] = 1.0 / (1.0 + self._wall_c * dt / (par.density * self.eps))
         else:
             w[:] = 1.0
         self.bc.apply_velocity(q_star, self.t + dt)

@@ -59,7 +59,7 @@ def test_mass_balance_time_varying_eps():
 def test_inlet_ramp():
     md = channel(0.2, 0.05, 8, 4)
     s = channel_solver(md, 0.4, rho=RHO, mu=MU)
-    s.bc.inlets[0][2].ramp_time = 0.1
+    s.bc.inlets[0].spec.ramp_time = 0.1
     info = s.step(0.025)
     assert info.inflow == pytest.approx(0.4 * 0.05 * 0.25, rel=1e-12)
     with pytest.raises(ValueError, match="dt must be > 0"):
