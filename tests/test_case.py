@@ -188,5 +188,12 @@ def test_wins_over_on_an_inlet_over_a_no_slip_wall(tmp_path):
         "[gas.boundary.inlet] wins_over = 'walls': [gas.boundary.walls] must be a no-slip wall "
         "(type = 'wall', slip = false)"
     ]
-    case = load_case(write(tmp_path, BASE), ['gas.boundary.inlet.wins_over=["walls"]'])
+    got = problems(tmp_path, BASE, ['gas.boundary.inlet.wins_over=["walls"]'])
+    assert got == [
+        "[gas.boundary.inlet] wins_over = 'walls': [gas.boundary.walls] must set wall_law = 'no_slip' "
+        "(an inlet already shares its nodes with a wall of the porous wall law by facet)"
+    ]
+    case = load_case(
+        write(tmp_path, BASE), ['gas.boundary.inlet.wins_over=["walls"]', 'gas.boundary.walls.wall_law="no_slip"']
+    )
     assert case.boundary["inlet"].wins_over == ["walls"]

@@ -13,8 +13,8 @@ Each named facet tag gets a `BoundarySpec`:
   normal to it), and the velocity U_o f_j n: the gas then enters through exactly the inlet's facets
   (A_open = Σ_j f_j B_j·n is the inlet's own area), so the gas-free strip over a wall patch is the patch
   itself on every mesh. Where the inlet meets a strict no-slip wall (`wall_law = "no_slip"`), no-slip wins;
-  with `wins_over` (no-slip wall tags) those shared nodes take the inlet's velocity instead (they stay
-  no-slip if they also touch another strict no-slip wall). A node-based no-slip condition cannot give a
+  with `wins_over` (strict no-slip wall tags) those shared nodes take the inlet's velocity instead (they
+  stay no-slip if they also touch another strict no-slip wall). A node-based no-slip condition cannot give a
   wall patch exactly its cells: with no-slip at the patch's edge nodes the inflow ramps from U to 0 over
   the cell beside the patch, so no gas enters over the patch's cells plus one; with `wins_over`, over the
   patch's cells minus one.
@@ -147,6 +147,12 @@ class NodalBoundary:
             for w in s.wins_over:
                 if not (specs[w].type == "wall" and not specs[w].slip):
                     msg = f"wins_over {w!r} is not a no-slip wall (type = 'wall', slip = false)"
+                    raise ValueError(f"boundary {n!r}: {msg}")
+                if specs[w].wall_law != "no_slip":
+                    msg = (
+                        f"wins_over {w!r} needs wall_law = 'no_slip' on it (an inlet already shares its nodes "
+                        "with a wall of the porous wall law by facet)"
+                    )
                     raise ValueError(f"boundary {n!r}: {msg}")
         # (the assemblies below are collective: every rank takes part, whether or not it has such nodes)
         outlet_nodes = [dofs[n] for n, s in specs.items() if s.type == "outlet"]

@@ -85,6 +85,9 @@ def test_wins_over_needs_an_inlet_and_a_no_slip_wall(mesh):
     }
     with pytest.raises(ValueError, match=r"boundary 'inlet': wins_over 'walls' is not a no-slip wall"):
         VANSSolver(mesh, VANSParameters(boundaries=bcs), eps=1.0)
+    bcs["walls"] = BoundarySpec("wall")  # the porous wall law: the inlet shares its nodes by facet already
+    with pytest.raises(ValueError, match=r"boundary 'inlet': wins_over 'walls' needs wall_law = 'no_slip'"):
+        VANSSolver(mesh, VANSParameters(boundaries=bcs), eps=1.0)
     bcs["inlet"] = BoundarySpec("inlet", velocity=U, wins_over=("nozzle",))
     with pytest.raises(MeshError, match=r"an inlet's wins_over names facet tag\(s\) 'nozzle'"):
         VANSSolver(mesh, VANSParameters(boundaries=bcs), eps=1.0)

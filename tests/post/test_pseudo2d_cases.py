@@ -64,7 +64,7 @@ def test_c1_partial_slip_edges_lets_every_wall_slip_and_the_inlet_take_the_patch
 
 
 def test_studies_load():
-    sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13, "walls": 7}
+    sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13, "walls": 9}
     for name, n in sizes.items():
         s = load_study(DEMO / f"study-{name}.toml")
         assert len(s.members) == n
