@@ -1,12 +1,31 @@
-"""Coarse-graining cost: TM parcels at l = 1, 2, 3 (DEM cost per simulated second), PCPM update cost, one-way driver.
+"""Coarse-graining cost on seed 000's 2D bed: plain DEM (l = 1), TM (l = 2) and PCPM (from l = 2) in one run.
 
-Run: `python benchmarks/coarse.py [--quick]`. Prints figures and the machine; asserts nothing.
+Run: `python benchmarks/coarse.py [--time 0.1] [--micro]`. Asserts nothing; prints the machine, each run's wall
+time of the coupled time loop and its split, then
+
+    PCPM l=2 wall / DEM wall: X
+    TM l=2 wall / DEM wall: Y
+    event energy / bed kinetic energy: Z
+
+The three runs are the 4,080-original bed of `demos/wang2d/coarse/` (`tm1.toml`: plain DEM, `tm2.toml`,
+`pcpm2.toml`: 1,020 parcels or groups of 8 originals), each from its packed bed at t = 0 over the same
+simulated time (`--time`, default 0.1 s: the inlet ramp of 0.02 s and the bed's first rise), no output. The
+wall time is that of the gas steps only: building the solver and the first gas step (Numba and form
+compilation) are left out. Z is the energy the PCPM events injected over the run (`GroupDynamics.total`)
+divided by the bed's kinetic energy (translation + rotation of every group) averaged over the gas steps.
+Other jobs on the machine change X and Y; run it on an idle machine to compare with seed 000's ~0.10.
+
+`--micro` adds the older component benchmarks: TM parcels in a box (DEM cost per simulated second at
+l = 1, 2, 3), PCPM `apply`/d_cl per call on random groups, and the one-way driver.
 """
 
 import argparse
+import logging
 import os
 import platform
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -17,6 +36,8 @@ from febed.dem import DEM, DEMParams, Walls
 from febed.dem.insertion import random_positions
 from febed.gas.prescribed import make_prescribed_gas
 
+CASES = Path(__file__).resolve().parents[1] / "demos" / "wang2d" / "coarse"
+
 
 def machine():
     cpu = "?"
@@ -25,7 +46,52 @@ def machine():
             cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    return f"{os.cpu_count()} cpus, {cpu}, {platform.python_version()}"
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return f"{os.cpu_count()} cpus, {cpu}, Python {platform.python_version()}, load average {load:.2f}"
+
+
+def coupled_run(name, sim_time, workdir):
+    """Wall time (s) of `sim_time` s of the case `name` after its first gas step; the solver for the figures."""
+    from febed.case import load_case
+    from febed.meshing import load_case_mesh
+    from febed.solver import Timers, build_solver
+
+    case = load_case(CASES / f"{name}.toml", [f"output.directory={workdir / name}"])
+    md = load_case_mesh(case, cache_dir=workdir / "mesh")
+    s = build_solver(case, md, logging.getLogger(f"bench.{name}"))
+    s.step()  # compilation
+    s.check()
+    s.timers = Timers()
+    t_end = s.t + sim_time
+    wall = 0.0
+    ke = []
+    while s.t < t_end * (1 - 1e-12):
+        t0 = time.perf_counter()
+        s.step()
+        s.check()
+        wall += time.perf_counter() - t0
+        ke.append(s.dem.kinetic_energy())
+    t = s.timers
+    split = f"DEM {t.dem:.2f}, coupling {t.coupling:.2f}, gas {t.gas:.2f}"
+    print(f"{name}: {s.dem.particles.n_owned} particles, {s.steps - 1} gas steps to t = {s.t:.4f} s: {wall:.2f} s "
+          f"({split}), {wall / sim_time:.1f} s per simulated s")  # fmt: skip
+    return wall, s, float(np.mean(ke))
+
+
+def coupled_bench(sim_time):
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        dem, _, _ = coupled_run("tm1", sim_time, work)
+        tm, _, _ = coupled_run("tm2", sim_time, work)
+        pcpm, s, ke = coupled_run("pcpm2", sim_time, work)
+    gd = s.groups
+    tot = gd.total
+    print(f"pcpm2: criteria every {gd.event_interval * 1e3:.2f} ms (0.1 U_mf/g), {tot.crushed} crushes, "
+          f"{tot.merged} merges, {tot.groups} groups; event energy {tot.energy_injected:.3g} J, mean bed kinetic "
+          f"energy {ke:.3g} J")  # fmt: skip
+    print(f"PCPM l=2 wall / DEM wall: {pcpm / dem:.3f}")
+    print(f"TM l=2 wall / DEM wall: {tm / dem:.3f}")
+    print(f"event energy / bed kinetic energy: {tot.energy_injected / ke:.3g}")
 
 
 def tm_bench(n_orig_total, steps):
@@ -98,9 +164,13 @@ def oneway_bench(count, windows):
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--time", type=float, default=0.1, help="simulated time of each coupled run (s)")
+    ap.add_argument("--micro", action="store_true", help="also the component benchmarks")
+    ap.add_argument("--quick", action="store_true", help="smaller component benchmarks")
     a = ap.parse_args()
     print(machine())
-    tm_bench(2000 if a.quick else 8000, 100 if a.quick else 400)
-    pcpm_bench(1000 if a.quick else 4000, 5 if a.quick else 20)
-    oneway_bench(200 if a.quick else 1000, 20 if a.quick else 100)
+    if a.micro:
+        tm_bench(2000 if a.quick else 8000, 100 if a.quick else 400)
+        pcpm_bench(1000 if a.quick else 4000, 5 if a.quick else 20)
+        oneway_bench(200 if a.quick else 1000, 20 if a.quick else 100)
+    coupled_bench(a.time)

@@ -367,7 +367,21 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "merge_tolerance": Param(
             0.01, "", "pcpm: groups merge if |v_i - v_j| < this x max(|v_i|, |v_j|) (seed 000 eq 44)", float, lo=0.0
         ),
-        "interval": Param(1, "gas steps", "pcpm: crush/merge criteria evaluated every this many gas steps", int, lo=1),
+        "event_interval": Param(
+            0.0,
+            "s",
+            "pcpm: simulated time between evaluations of the crush/merge criteria; 0 = 0.1 U_mf/g, a tenth of a "
+            "group's relaxation time at minimum fluidization (febed.coarse.pcpm); below the gas step: every step",
+            float,
+            lo=0.0,
+        ),
+        "interval": Param(
+            1,
+            "-",
+            "pcpm: of the gas steps at which the criteria are due (event_interval), use every this many",
+            int,
+            lo=1,
+        ),  # fmt: skip
         "contact_power": Param(True, "-", "pcpm: include the contact power E_cc (seed 000 eq 38) in d_cl", bool),
         "placement_tries": Param(32, "-", "pcpm: random draws per crushed child's position", int, lo=1),
     },

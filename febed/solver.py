@@ -137,6 +137,7 @@ class CoupledSolver:
             dem.attach_exchange(ParticleExchange(self.ma, cell_owners(md.mesh)), distribute=True)
         self.fixed = case.particles.fixed
         self._located_now = False  # the coupler's cells and weights match the particles' current positions
+        self._fluid_tau = None  # min m_p/K_p if the FLUID record is already that of the next step (PCPM)
         self.outlet_facets = self._outlet_facet_mask()
         self.t = 0.0
         self.steps = 0
@@ -192,7 +193,7 @@ class CoupledSolver:
         self.t += dt
         self.steps += 1
         if self.groups is not None:
-            self.group_events()
+            self.group_events(dt)
 
     def advance_particles(self, dt: float, n_sub: int) -> None:
         """`n_sub` DEM steps of dt/n_sub with drag and pressure-gradient forces from the frozen gas.
@@ -202,7 +203,10 @@ class CoupledSolver:
         formed in the current row order.
         """
         t0 = time.perf_counter()
-        tau = self._fluid(relocate=not self._located_now)  # min_p m_p/K_p (inf without particles)
+        tau = self._fluid_tau  # the record `group_events` made from this gas, if the particles are unchanged since
+        if tau is None or not self._located_now:
+            tau = self._fluid(relocate=not self._located_now)  # min_p m_p/K_p (inf without particles)
+        self._fluid_tau = None
         P = self.dem.particles
         if self.md.comm.size > 1:  # every rank steps the same chunks (the DEM exchanges ghosts per step)
             tau = self.md.comm.allreduce(tau, op=MPI.MIN)
@@ -224,15 +228,33 @@ class CoupledSolver:
             done += steps
         self.timers.coupling += time.perf_counter() - t0
 
-    def group_events(self) -> None:
-        """PCPM: crush and merge the particle-groups in the flow of the new gas step (seed 000 sec 2.3)."""
+    def group_events(self, dt: float) -> None:
+        """PCPM: crush and merge the particle-groups in the flow of the gas step of dt (s) just made (seed 000 sec 2.3).
+
+        Only at the gas steps that cross a multiple of `coarse_grain.event_interval` (`GroupDynamics.due`).
+        The particles were located by `project` and have not moved since; the drag F_D evaluated here from the
+        new gas is the record the next step starts from, so that step reuses it unless the events (or, with
+        MPI, the ghost refresh) changed the particle rows.
+        """
+        gd = self.groups
+        if not gd.due(self.t - dt, self.t):
+            return
+        dem = self.dem
+        if gd.calls % gd.interval:  # due, but not this one of every `interval` (nothing is evaluated)
+            gd.update(dem, None, None, None)
+            return
         t0 = time.perf_counter()
-        f_d = u_p = eps_p = None
-        if self.groups.calls % self.groups.interval == 0:  # the criteria are evaluated at this call
-            _, f_d, _ = self.fluid_state(relocate=True)
-            u_p, eps_p, _ = self.coupler.gas_at_particles(self.gas.u, self.gas.eps, self.gas.grad_p)
-        self.groups.update(self.dem, eps_p, u_p, f_d)
-        self._located_now = False  # groups were added and removed
+        if gd.prepare(dem) or not self._located_now:  # a rebuild may have reordered the rows
+            self.locate_particles()
+            self._located_now = True
+        f_d = np.empty((dem.particles.n_owned, 3))
+        tau = self._fluid(relocate=False, drag=f_d)
+        u_p, eps_p, _ = self.coupler.gas_at_particles(self.gas.u, self.gas.eps, self.gas.grad_p)
+        gd.update(dem, eps_p, u_p, f_d)
+        if dem.exchange is None and not dem._dirty:  # no event: the same rows, so the same record next step
+            self._fluid_tau = tau
+        else:
+            self._located_now = False  # groups were added and removed (with MPI: the ghost rows were dropped)
         self.timers.coupling += time.perf_counter() - t0
 
     def locate_particles(self) -> None:
@@ -290,6 +312,7 @@ class CoupledSolver:
         """Locate the particles afresh and recompute α_p (after the particles were replaced, e.g. a restart)."""
         self._failure = None
         self._located_now = False
+        self._fluid_tau = None
         self.project()
 
     # ------------------------------------------------------------------------------------ health

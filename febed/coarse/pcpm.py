@@ -13,7 +13,9 @@ coupled loop once per gas step:
 3. The DEM's particles are changed only through `DEM.remove_particles` / `DEM.add_particles`.
 
 Choices where the paper is silent (documented and tested):
-* How often: once per call of `update` (the coupled loop: once per gas step, every `interval` calls).
+* How often: once per call of `update`. The coupled loop calls it at the gas steps that cross a multiple of
+  `event_interval` (`due`), by default a tenth of τ_mf = U_mf/g, the relaxation time of a group at minimum
+  fluidization (see `GroupDynamics.__init__`), and `update` evaluates every `interval`-th of those calls.
 * Crush sizes in integers: n_new - 1 = floor(d²/d_cl²) children of k = max(1, floor((d_cl/d_O)³)) originals, the
   remainder n - (n_new - 1) k >= 1 in the last child (eqs 41-43); a single original never crushes.
 * Where children go: centres in the parent's sphere (disk in 2D): best of `tries` random draws per child
@@ -98,21 +100,35 @@ class GroupDynamics:
                  u_mf: float | None = None, eps_max: float = 0.9997, max_group: int = 27,
                  overlap_tolerance: float = 0.05, merge_tolerance: float = 0.01, crush: bool = True,
                  merge: bool = True, contact_power: bool = True, tries: int = 32, interval: int = 1,
-                 measure_energy: bool = True, seed: int = 12345):  # fmt: skip
-        """Set the original particle (d_orig m, rho_p kg/m^3), gas (rho_g, mu_g) and the model's parameters."""
+                 event_interval: float | None = None, measure_energy: bool = True, seed: int = 12345):  # fmt: skip
+        """Set the original particle (d_orig m, rho_p kg/m^3), gas (rho_g, mu_g) and the model's parameters.
+
+        event_interval: simulated time (s) between evaluations of the criteria in the coupled loop (`due`; 0:
+            every gas step). None: 0.1 τ_mf with τ_mf = U_mf/g, the time a group takes to relax to the gas
+            when its drag at the minimum-fluidization slip carries its weight (K U_mf = m g, so m/K = U_mf/g).
+            A group of n originals has n times an original's drag and mass, so τ_mf is the same for every
+            group size: it is the time on which a group's velocity, hence U_p, E_st and the merge test of
+            eq 44, follows a change of the flow around it (ε and the gas velocity change no faster in a bubbling
+            bed). Evaluating every tenth of it delays an event by at most 0.1 τ_mf, during which a group's
+            velocity moves by at most about a tenth of the way to the new flow: the same margin as the coupled
+            loop's drag updates (every 0.1 τ_p, `febed.solver`). The contact time scale would be the wrong one:
+            contacts change E_cc within T_C, but events follow the state of a region, which lasts for τ_mf.
+            For 1.5 mm, 1,150 kg/m^3 originals in air (seed 000), U_mf = 0.494 m/s: τ_mf = 50 ms, an evaluation
+            every 5.0 ms (25 gas steps of 2e-4 s) instead of every gas step.
+        """
         checks = {
             "d_orig": d_orig > 0, "rho_p": rho_p > rho_g > 0, "mu_g": mu_g > 0, "eps_mf": 0 < eps_mf < 1,
             "gravity": gravity > 0, "eps_max": eps_mf < eps_max < 1, "max_group": int(max_group) >= 1,
             "overlap_tolerance": 0 <= overlap_tolerance < 1, "merge_tolerance": merge_tolerance >= 0,
             "tries": int(tries) >= 1, "interval": int(interval) >= 1,
-            "u_mf": u_mf is None or u_mf > 0,
+            "u_mf": u_mf is None or u_mf > 0, "event_interval": event_interval is None or event_interval >= 0,
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ValueError(
                 f"GroupDynamics: invalid {bad[0]} (need d_orig > 0, rho_p > rho_g > 0, mu_g > 0, 0 < eps_mf < "
                 "eps_max < 1, gravity > 0, max_group >= 1, 0 <= overlap_tolerance < 1, merge_tolerance >= 0, "
-                "tries >= 1, interval >= 1, u_mf > 0 or None)"
+                "tries >= 1, interval >= 1, u_mf > 0 or None, event_interval >= 0 or None)"
             )
         self.d_orig = float(d_orig)
         self.rho_p, self.rho_g, self.mu_g = float(rho_p), float(rho_g), float(mu_g)
@@ -126,6 +142,8 @@ class GroupDynamics:
         self.use_contact_power = bool(contact_power)
         self.tries = int(tries)
         self.interval = int(interval)
+        self.tau_mf = self.u_mf / self.g
+        self.event_interval = 0.1 * self.tau_mf if event_interval is None else float(event_interval)
         self.measure_energy = bool(measure_energy)
         self.rng = np.random.default_rng(seed)
         self.calls = 0
@@ -133,15 +151,36 @@ class GroupDynamics:
         self.total = EventStats()
         self._interval = EventStats()
 
+    # ------------------------------------------------------------------ when
+    def due(self, t0: float, t1: float) -> bool:
+        """True if a gas step from t0 to t1 (s) crosses a multiple of `event_interval` (always if it is 0)."""
+        if self.event_interval <= 0.0:
+            return True
+        return math.floor(t1 / self.event_interval) > math.floor(t0 / self.event_interval)
+
+    @staticmethod
+    def prepare(dem) -> bool:
+        """Rebuild the DEM's pair lists if rows changed since the last build; True if rebuilt (collective with MPI).
+
+        A rebuild may reorder (and with MPI migrate) the rows: call this before taking any per-row value that
+        `update` or `equivalent_diameter` is given.
+        """
+        ex = getattr(dem, "exchange", None)
+        dirty = bool(dem._dirty)
+        if ex.any(dirty) if ex is not None else dirty:
+            dem.rebuild()
+            return True
+        return False
+
     # ------------------------------------------------------------------ d_cl (eqs 32-39)
     def contact_power(self, dem) -> np.ndarray:
         """E_cc (W/kg) of the owned particles from their current contacts (seed 000 eq 38)."""
+        self.prepare(dem)  # the pair list of the current rows (a no-op if `prepare` was called before)
         P = dem.particles
         n = P.n_owned
         out = np.zeros(n)
         if n == 0:
             return out
-        dem.compute_forces()  # rebuilds the pair list for the current rows if needed
         pl = dem.pairs
         contact_power(P.pos, P.vel, P.omega, P.diameter, P.mass, n, pl.start, pl.nbr, pl.hist, dem.pp, out)
         return out

@@ -8,7 +8,7 @@
 * `scg`: round(N / l³) particles of diameter l d and density ρ d² / (l d)² (seed 003 eq 7), n_orig = 1;
   contacts as given.
 * `pcpm`: groups of l³ originals to start with (as `tm`); contacts scaled per pair by the two groups' sizes
-  (`linear_groups`); groups crush and merge after each gas step (`GroupDynamics`).
+  (`linear_groups`); groups crush and merge every `event_interval` of simulated time (`GroupDynamics`).
 
 The drag of a particle of n_orig originals is n_orig times that of one original of d / n_orig^(1/3) at its
 velocity (the coupling does this for every model). A packed bed file holds the particles as inserted, so a
@@ -99,7 +99,7 @@ def configure_dem(case, dem) -> None:
 
 
 def group_dynamics(case):
-    """The `GroupDynamics` of a `pcpm` case (crush and merge each gas step), else None."""
+    """The `GroupDynamics` of a `pcpm` case (crush and merge every `event_interval`), else None."""
     cg = case.coarse_grain
     if cg.model != "pcpm":
         return None
@@ -109,5 +109,6 @@ def group_dynamics(case):
         case.particles.diameter, case.particles.density, case.gas.density, case.gas.viscosity, cg.eps_mf,
         gravity=case.run.gravity, u_mf=cg.u_mf if cg.u_mf > 0 else None, eps_max=cg.eps_max,
         max_group=cg.max_group, overlap_tolerance=cg.overlap_tolerance, merge_tolerance=cg.merge_tolerance,
-        contact_power=cg.contact_power, tries=cg.placement_tries, interval=cg.interval, seed=case.run.seed,
+        contact_power=cg.contact_power, tries=cg.placement_tries, interval=cg.interval,
+        event_interval=cg.event_interval if cg.event_interval > 0 else None, seed=case.run.seed,
     )  # fmt: skip
