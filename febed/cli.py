@@ -150,8 +150,12 @@ def cmd_mesh(args) -> int:
 
 
 def cmd_run(args) -> int:
-    """Validate, prepare the output folder, and hand the case to the runner of its mode."""
-    from febed.io.rundir import get_logger, prepare_output
+    """Validate, lock and prepare the output folder, and hand the case to the runner of its mode.
+
+    The folder's lock (`febed.io.rundir.lock_output`) is taken before anything is written to the folder and
+    released when the run ends, however it ends.
+    """
+    from febed.io.rundir import get_logger, held_lock, prepare_output, release_output
 
     case = load_case(args.case, args.overrides)
     module = RUNNERS[case.run.mode]
@@ -164,35 +168,47 @@ def cmd_run(args) -> int:
                 f"({module} is missing); see the features table in README.md"
             ) from None
         raise
-    if args.restart is None:
-        outdir = prepare_output(case, overwrite=args.overwrite)
+    if args.restart is not None:
+        if args.overwrite:
+            raise UserError("--restart continues the run in the output folder: it cannot be combined with --overwrite")
+        if case.run.mode not in RESTARTABLE:
+            raise UserError(
+                f"--restart is available for [run] mode = {' or '.join(map(repr, RESTARTABLE))}, not {case.run.mode!r}"
+            )
+    held = held_lock(case.output_dir()) is not None  # by this process already (the Python API): kept
+    try:
+        if args.restart is None:
+            outdir, checkpoint = prepare_output(case, overwrite=args.overwrite), None
+        else:
+            outdir, checkpoint = _restart_target(case, args.restart)
         log = get_logger(outdir, verbose=args.verbose)
-        log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
-        log.info(f"output folder: {outdir}")
-        runner.run(case, outdir, log)
-        return 0
-    if args.overwrite:
-        raise UserError("--restart continues the run in the output folder: it cannot be combined with --overwrite")
-    if case.run.mode not in RESTARTABLE:
-        raise UserError(
-            f"--restart is available for [run] mode = {' or '.join(map(repr, RESTARTABLE))}, not {case.run.mode!r}"
-        )
-    outdir, checkpoint = _restart_target(case, args.restart)
-    log = get_logger(outdir, verbose=args.verbose)
-    log.info(f"febed: case {case.name} ({case.path}), restart, {MPI.COMM_WORLD.size} rank(s)")
-    runner.run(case, outdir, log, restart=checkpoint)
+        lock = held_lock(outdir)
+        if lock is not None and lock.note:
+            log.warning(f"note: {lock.note}")
+        if checkpoint is None:
+            log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
+            log.info(f"output folder: {outdir}")
+            runner.run(case, outdir, log)
+        else:
+            log.info(f"febed: case {case.name} ({case.path}), restart, {MPI.COMM_WORLD.size} rank(s)")
+            runner.run(case, outdir, log, restart=checkpoint)
+        MPI.COMM_WORLD.barrier()  # every rank is done with the folder
+    finally:
+        if not held:
+            release_output(case.output_dir())
     return 0
 
 
 def _restart_target(case, restart: str) -> tuple[Path, Path]:
     """The run folder and checkpoint to continue; refuses case changes a restart cannot take (collective)."""
     from febed.io.checkpoint import FOLDER
-    from febed.io.rundir import RESOLVED_CASE, _header, atomic_write_text, running_process
+    from febed.io.rundir import RESOLVED_CASE, _header, atomic_write_text, lock_output, running_process
     from febed.restart import case_changes, read_resolved
 
     outdir = case.output_dir()
     if not (outdir / RESOLVED_CASE).is_file():
         raise UserError(f"--restart: {outdir} holds no febed run ({RESOLVED_CASE} missing); run without --restart")
+    lock_output(outdir)  # before anything is written; released by `cmd_run`
     pid = MPI.COMM_WORLD.bcast(running_process(outdir) if MPI.COMM_WORLD.rank == 0 else None, root=0)
     if pid is not None:
         raise UserError(
