@@ -11,8 +11,9 @@ The three runs are the 4,080-original bed of `demos/wang2d/coarse/` (`tm1.toml`:
 `pcpm2.toml`: 1,020 parcels or groups of 8 originals), each from its packed bed at t = 0 over the same
 simulated time (`--time`, default 0.1 s: the inlet ramp of 0.02 s and the bed's first rise), no output. The
 wall time is that of the gas steps only: building the solver and the first gas step (Numba and form
-compilation) are left out. Z is the energy the PCPM events injected over the run (`GroupDynamics.total`)
-divided by the bed's kinetic energy (translation + rotation of every group) averaged over the gas steps.
+compilation) are left out. Z is the energy the PCPM events injected over the run (`GroupDynamics.total`: the
+measured change of kinetic + elastic + gravitational energy, negative when the events dissipate) divided by
+the bed's kinetic energy (translation + rotation of every group) averaged over the gas steps.
 Other jobs on the machine change X and Y; run it on an idle machine to compare with seed 000's ~0.10.
 
 `--micro` adds the older component benchmarks: TM parcels in a box (DEM cost per simulated second at

@@ -20,22 +20,30 @@ Choices where the paper is silent (documented and tested):
   remainder n - (n_new - 1) k >= 1 in the last child (eqs 41-43); a single original never crushes.
 * Where children go: centres in the parent's sphere (disk in 2D): best of `tries` random draws per child
   (largest gap to the siblings placed), then the siblings are relaxed apart with their centres kept in the
-  parent's sphere (8 originals out of a group of 8 always fit at a 5 % tolerance); after 4 failed attempts the
+  parent's sphere (until apart with `conserve_energy`, else to half the tolerance); after 4 failed attempts the
   crush is deferred if any child would overlap a sibling, another group or a wall by more than
   `overlap_tolerance` of the smaller diameter.
 * Merging: touching groups (overlap > 0) meeting eq 44 (|v_i - v_j| < 0.01 max(|v_i|, |v_j|)), with
   n_i + n_j <= `max_group` and a merged diameter not above either group's d_cl (so a merge is never undone by the
   next crush test); the merged group sits at the centre of mass with the mass-weighted velocity (exact momentum,
-  instead of eq 46's "v_i or v_j") and the spin of summed I ω; deferred if it would overlap beyond the tolerance.
+  instead of eq 46's "v_i or v_j") and the spin of summed I ω; its centre is then pushed out of its overlaps
+  with the other groups and the walls by at most half the smaller parent's radius (gravitational energy
+  accounted); deferred if it would still overlap beyond the tolerance.
 * Events in one pass never touch the same region (a later event intersecting an earlier one waits).
 * MPI: each rank evaluates its own groups; the other ranks' groups near the partition (ghosts) are obstacles in
   the overlap checks and never take part in an event, so two groups on different ranks do not merge while they
   are on different ranks. A group within two largest radii of a ghost takes part in events only on its rank's
   turn (every `size`-th evaluation, by rank), so that two ranks never place groups in the same region in one
   evaluation; it waits at most `size` evaluations (counted as conflicts).
-* Energy: each update reports the change of kinetic + elastic contact energy it caused (J): crushes keep the
-  translational kinetic energy, lose some spin energy and add the elastic energy of tolerated overlaps; merges
-  lose the (small) relative kinetic energy.
+* Energy (`conserve_energy`, on by default): an event is accepted only if it does not increase the kinetic
+  (translation + spin) + elastic contact + gravitational energy of the groups it removes and creates, their
+  contacts included, with each spring's own group-scaled stiffness; otherwise it is deferred. A merge loses
+  the pair's relative kinetic energy (eq 44 keeps it small) and some spin energy and frees the springs of both
+  parents, which pay for the springs of the merged group; a crush keeps the translational kinetic energy, loses
+  some spin energy, and its children's springs (with siblings, other groups, walls) must not exceed the
+  parent's. Count and momentum stay exact. Events therefore only dissipate energy; each update reports the
+  measured change of the whole bed's kinetic + elastic + gravitational energy (J, `EventStats.energy_injected`,
+  probe column `event_energy`, cumulative).
 """
 
 from __future__ import annotations
@@ -69,7 +77,8 @@ class EventStats:
         crushed: groups crushed; children: groups they became; merged: merge events (2 groups -> 1).
         crush_deferred, merge_deferred: events refused for overlap (or capacity); conflicts: events that waited
             because an earlier event of the same update touched their region.
-        energy_injected: change (J) of kinetic + elastic contact energy caused by the events (0 if not measured).
+        energy_injected: change (J) of the whole bed's kinetic + elastic contact + gravitational energy caused by
+            the events (0 if not measured).
         d_cl_min: smallest finite d_cl (m) seen (inf if none).
     """
 
@@ -100,7 +109,8 @@ class GroupDynamics:
                  u_mf: float | None = None, eps_max: float = 0.9997, max_group: int = 27,
                  overlap_tolerance: float = 0.05, merge_tolerance: float = 0.01, crush: bool = True,
                  merge: bool = True, contact_power: bool = True, tries: int = 32, interval: int = 1,
-                 event_interval: float | None = None, measure_energy: bool = True, seed: int = 12345):  # fmt: skip
+                 event_interval: float | None = None, measure_energy: bool = True, conserve_energy: bool = True,
+                 seed: int = 12345):  # fmt: skip
         """Set the original particle (d_orig m, rho_p kg/m^3), gas (rho_g, mu_g) and the model's parameters.
 
         event_interval: simulated time (s) between evaluations of the criteria in the coupled loop (`due`; 0:
@@ -145,6 +155,7 @@ class GroupDynamics:
         self.tau_mf = self.u_mf / self.g
         self.event_interval = 0.1 * self.tau_mf if event_interval is None else float(event_interval)
         self.measure_energy = bool(measure_energy)
+        self.conserve_energy = bool(conserve_energy)
         self.rng = np.random.default_rng(seed)
         self.calls = 0
         self.evaluations = 0  # calls of `apply`: with MPI, whose turn it is at the partition
@@ -232,12 +243,14 @@ class GroupDynamics:
         removed = np.zeros(n, dtype=bool)
         counts = np.zeros(6, dtype=np.int64)
         W = dem.walls
+        de = np.zeros(2)
         m = group_events(
             pos, np.ascontiguousarray(P.vel[:n]), np.ascontiguousarray(P.omega[:n]), diam,
-            np.ascontiguousarray(P.n_orig[:n]), n, n_all, turn, self.d_orig, dem.params.dim == 2, d_cl, self.crush,
-            self.merge, self.max_group, self.merge_tol, self.tol, self.tries,
-            int(self.rng.integers(0, 2**31 - 1)), W.plane_p, W.plane_n, W.facets, W.nv, removed, new_pos, new_vel,
-            new_omega, new_n, counts,
+            np.ascontiguousarray(P.mass[:n_all]), np.ascontiguousarray(P.n_orig[:n]), n, n_all, turn, self.d_orig,
+            dem.params.dim == 2, d_cl, self.crush, self.merge, self.max_group, self.merge_tol, self.tol, self.tries,
+            int(self.rng.integers(0, 2**31 - 1)), W.plane_p, W.plane_n, W.facets, W.nv,
+            *self._springs(dem.pp), *self._springs(dem.pw), np.asarray(dem.gvec, dtype=float), self.conserve_energy,
+            removed, new_pos, new_vel, new_omega, new_n, counts, de,
         )  # fmt: skip
         stats.crushed, stats.children, stats.merged = int(counts[0]), int(counts[1]), int(counts[2])
         stats.crush_deferred, stats.merge_deferred, stats.conflicts = int(counts[3]), int(counts[4]), int(counts[5])
@@ -285,7 +298,13 @@ class GroupDynamics:
 
     @staticmethod
     def _energy(dem) -> float:
-        return dem.kinetic_energy() + dem.elastic_energy()
+        """Kinetic + elastic contact + gravitational energy (J) of the whole bed (collective with MPI)."""
+        return dem.kinetic_energy() + dem.elastic_energy() + dem.potential_energy()
+
+    @staticmethod
+    def _springs(params) -> tuple[float, float]:
+        """(k_n, m_ref) of a contact law's parameters: m_ref > 0 for per-pair group scaling, 0 for a fixed k_n."""
+        return float(params.kn), float(getattr(params, "m_ref", 0.0))
 
     def crush_sizes(self, n: int, d: float, d_cl: float) -> tuple[int, int, int]:
         """(originals per full child, number of full children, remainder) of a crush (eqs 40-42)."""

@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
-from febed.dem.walls import wall_distance
+from febed.dem.walls import wall_distance, wall_point
 
 NO_CRUSH = np.inf  # d_cl where it is not positive and finite: the group does not crush
 
@@ -136,6 +136,54 @@ def _overlap_walls(x, y, z, r, plane_p, plane_n, facets, nv):
     return worst
 
 
+@njit(cache=True, inline="always")
+def _stiffness(kn, m_ref, ma, mb):
+    """Normal stiffness (N/m) of a pair of masses ma, mb (kg; mb = inf for a wall): k_n, or k_n (m_eff/m_ref)^(2/3)."""
+    if m_ref > 0.0:
+        m_eff = ma if math.isinf(mb) else ma * mb / (ma + mb)
+        return kn * (m_eff / m_ref) ** (2.0 / 3.0)
+    return kn
+
+
+@njit(cache=True)
+def _energy_static(x, y, z, r, mq, pos, diam, mass, skip1, skip2, lo, h, dims, head, nxt, rmax, kn, m_ref):
+    """Spring energy (J) of a sphere (x, r, mass mq) overlapping the listed particles other than skip1, skip2."""
+    reach = r + rmax
+    e = 0.0
+    i0, i1, j0, j1, k0, k1 = _cell_range(x, y, z, reach, lo, h, dims)
+    for ci in range(i0, i1 + 1):
+        for cj in range(j0, j1 + 1):
+            for ck in range(k0, k1 + 1):
+                q = head[(ci * dims[1] + cj) * dims[2] + ck]
+                while q >= 0:
+                    if q != skip1 and q != skip2:
+                        dist = math.sqrt((pos[q, 0] - x) ** 2 + (pos[q, 1] - y) ** 2 + (pos[q, 2] - z) ** 2)
+                        ov = r + 0.5 * diam[q] - dist
+                        if ov > 0.0:
+                            e += 0.5 * _stiffness(kn, m_ref, mq, mass[q]) * ov * ov
+                    q = nxt[q]
+    return e
+
+
+@njit(cache=True)
+def _energy_walls(x, y, z, r, mq, plane_p, plane_n, facets, nv, kn, m_ref):
+    """Spring energy (J) of a sphere (x, r, mass mq) against its nearest wall (as `DEM.elastic_energy`)."""
+    best = np.inf
+    for w in range(plane_p.shape[0] + facets.shape[0]):
+        best = min(best, wall_distance(x, y, z, w, plane_p, plane_n, facets, nv))
+    if r > best:
+        return 0.5 * _stiffness(kn, m_ref, mq, np.inf) * (r - best) ** 2
+    return 0.0
+
+
+@njit(cache=True)
+def _pair_energy(a, b, pos, diam, mass, kn, m_ref):
+    """Spring energy (J) of the pair of rows a, b (0 if they do not touch)."""
+    dist = math.sqrt((pos[a, 0] - pos[b, 0]) ** 2 + (pos[a, 1] - pos[b, 1]) ** 2 + (pos[a, 2] - pos[b, 2]) ** 2)
+    ov = 0.5 * (diam[a] + diam[b]) - dist
+    return 0.5 * _stiffness(kn, m_ref, mass[a], mass[b]) * ov * ov if ov > 0.0 else 0.0
+
+
 @njit(cache=True)
 def _conflicts(x, y, z, ext, ev, n_ev):
     for e in range(n_ev):
@@ -146,9 +194,13 @@ def _conflicts(x, y, z, ext, ev, n_ev):
 
 
 @njit(cache=True)
-def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, lo, h, dims, head, nxt, rmax, plane_p,
-                    plane_n, facets, nv, kids):  # fmt: skip
-    """Centres of the nk children of group i in kids[:nk] (x, y, z, r); False if an overlap would exceed tol."""
+def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, target, lo, h, dims, head, nxt, rmax,
+                    plane_p, plane_n, facets, nv, kids):  # fmt: skip
+    """Centres of the nk children of group i in kids[:nk] (x, y, z, r); False if an overlap would exceed tol.
+
+    The siblings are relaxed apart until their largest overlap is at most `target` (fraction of the smaller
+    diameter; 0: apart) or for 200 sweeps.
+    """
     for c in range(nk):  # the larger of remainder / full children first
         first_rem = r_rem >= r_full
         is_rem = (c == 0) if first_rem else (c == nk - 1)
@@ -195,7 +247,8 @@ def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, lo, h,
                 worst = max(worst, ov / (2.0 * min(kids[a, 3], kids[b, 3])))
                 if dist == 0.0:
                     dx, dist = 1.0, 1.0
-                f = 0.5 * ov / dist
+                hair = 1e-9 * min(kids[a, 3], kids[b, 3]) if target <= 0.0 else 0.0  # target 0: apart by a hair
+                f = 0.5 * (ov + hair) / dist
                 kids[a, 0] -= f * dx
                 kids[a, 1] -= f * dy
                 kids[b, 0] += f * dx
@@ -212,7 +265,7 @@ def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, lo, h,
                 kids[a, 0] = cx + dx * R / dist
                 kids[a, 1] = cy + dy * R / dist
                 kids[a, 2] = cz + dz * R / dist
-        if worst <= 0.5 * tol:
+        if worst <= target:
             break
     for c in range(nk):
         x, y, z, rc = kids[c, 0], kids[c, 1], kids[c, 2], kids[c, 3]
@@ -248,9 +301,103 @@ def _near_ghosts(pos, diam, n, lo, h, dims, head, nxt, rmax, out):
 
 
 @njit(cache=True)
+def _relax_merged(x, y, z, rn, i, j, smax, dim2, pos, diam, lo, h, dims, head, nxt, rmax, plane_p, plane_n, facets,
+                  nv):  # fmt: skip
+    """Centre of a merged group of radius rn moved from (x, y, z) out of its overlaps, by at most smax (m).
+
+    Pushes of the overlaps with the other groups (not i, j) and the walls, 20 sweeps at most.
+    """
+    cx, cy, cz = x, y, z
+    reach = rn + rmax
+    for _ in range(20):
+        px = py = pz = 0.0
+        hit = False
+        i0, i1, j0, j1, k0, k1 = _cell_range(x, y, z, reach, lo, h, dims)
+        for ci in range(i0, i1 + 1):
+            for cj in range(j0, j1 + 1):
+                for ck in range(k0, k1 + 1):
+                    q = head[(ci * dims[1] + cj) * dims[2] + ck]
+                    while q >= 0:
+                        if q != i and q != j:
+                            dx = x - pos[q, 0]
+                            dy = y - pos[q, 1]
+                            dz = z - pos[q, 2]
+                            dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+                            ov = rn + 0.5 * diam[q] - dist
+                            if ov > 0.0 and dist > 0.0:
+                                px += ov * dx / dist
+                                py += ov * dy / dist
+                                pz += ov * dz / dist
+                                hit = True
+                        q = nxt[q]
+        for w in range(plane_p.shape[0] + facets.shape[0]):
+            qx, qy, qz, _kind, sd = wall_point(x, y, z, w, plane_p, plane_n, facets, nv)
+            if w < plane_p.shape[0]:
+                ov = rn - sd
+                nx, ny, nz = plane_n[w, 0], plane_n[w, 1], plane_n[w, 2]
+            else:
+                dist = math.sqrt((x - qx) ** 2 + (y - qy) ** 2 + (z - qz) ** 2)
+                ov = rn - dist
+                if dist == 0.0:
+                    continue
+                nx, ny, nz = (x - qx) / dist, (y - qy) / dist, (z - qz) / dist
+            if ov > 0.0:
+                px += ov * nx
+                py += ov * ny
+                pz += ov * nz
+                hit = True
+        if not hit:
+            break
+        x += 0.5 * px
+        y += 0.5 * py
+        if not dim2:
+            z += 0.5 * pz
+        d = math.sqrt((x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2)
+        if d > smax:
+            x = cx + (x - cx) * smax / d
+            y = cy + (y - cy) * smax / d
+            z = cz + (z - cz) * smax / d
+    return x, y, z
+
+
+@njit(cache=True)
+def _merge_energy(i, j, x, y, z, cx, cy, cz, rn, pos, vel, omega, diam, mass, lo, h, dims, head, nxt, rmax,
+                  plane_p, plane_n, facets, nv, kn_pp, mref_pp, kn_pw, mref_pw, gvec):  # fmt: skip
+    """ΔE (J) of merging rows i, j (centre of mass c) into one group of radius rn at (x, y, z) (`group_events`).
+
+    Kinetic: the relative translation energy and some spin energy are lost (momentum and the summed I ω kept);
+    elastic: the springs of i and j (with each other, the others, the nearest wall) go, the merged group's come;
+    gravitational: -(m_i + m_j) g · (x - c).
+    """
+    mi, mj = mass[i], mass[j]
+    mn = mi + mj
+    dn = 2.0 * rn
+    e = -mn * ((x - cx) * gvec[0] + (y - cy) * gvec[1] + (z - cz) * gvec[2])
+    ii = 0.1 * mi * diam[i] ** 2  # I = m d² / 10, as `Particles`
+    jj = 0.1 * mj * diam[j] ** 2
+    inn = 0.1 * mn * dn * dn
+    for a in range(3):
+        v = (mi * vel[i, a] + mj * vel[j, a]) / mn
+        w = (ii * omega[i, a] + jj * omega[j, a]) / inn
+        e += 0.5 * mn * v * v + 0.5 * inn * w * w
+        e -= 0.5 * mi * vel[i, a] ** 2 + 0.5 * mj * vel[j, a] ** 2
+        e -= 0.5 * ii * omega[i, a] ** 2 + 0.5 * jj * omega[j, a] ** 2
+    e += _energy_static(x, y, z, rn, mn, pos, diam, mass, i, j, lo, h, dims, head, nxt, rmax, kn_pp, mref_pp)
+    e += _energy_walls(x, y, z, rn, mn, plane_p, plane_n, facets, nv, kn_pw, mref_pw)
+    for p in (i, j):
+        rp = 0.5 * diam[p]
+        e -= _energy_static(pos[p, 0], pos[p, 1], pos[p, 2], rp, mass[p], pos, diam, mass, i, j, lo, h, dims, head,
+                            nxt, rmax, kn_pp, mref_pp)  # fmt: skip
+        e -= _energy_walls(pos[p, 0], pos[p, 1], pos[p, 2], rp, mass[p], plane_p, plane_n, facets, nv, kn_pw, mref_pw)
+    e -= _pair_energy(i, j, pos, diam, mass, kn_pp, mref_pp)
+    return e
+
+
+@njit(cache=True)
 def group_events(
-    pos, vel, omega, diam, n_orig, n, n_all, turn, d_orig, dim2, d_cl, do_crush, do_merge, n_max, merge_tol, tol,
-    tries, seed, plane_p, plane_n, facets, nv, removed, new_pos, new_vel, new_omega, new_n, counts,
+    pos, vel, omega, diam, mass, n_orig, n, n_all, turn, d_orig, dim2, d_cl, do_crush, do_merge, n_max, merge_tol,
+    tol, tries, seed, plane_p, plane_n, facets, nv, kn_pp, mref_pp, kn_pw, mref_pw, gvec, conserve, removed, new_pos,
+    new_vel, new_omega, new_n, counts, de,
 ):  # fmt: skip
     """Crush and merge events of one evaluation over rows [0, n); returns the number of new groups written.
 
@@ -267,7 +414,14 @@ def group_events(
     |v_i - v_j| < merge_tol max(|v_i|, |v_j|), n_i + n_j <= n_max and a merged diameter not above either d_cl
     become one group at their centre of mass with the count-weighted (= mass-weighted) velocity and spin, unless it
     would overlap beyond `tol`. Events whose regions intersect an earlier event of this evaluation wait.
-    `removed` (n,) marks parents; counts: [crushed, children, merged, crush deferred, merge deferred, conflicts].
+
+    Energy: ΔE of an event is the change of kinetic (translation + spin), elastic (normal springs with the
+    contact law's stiffness: k_n = kn_pp, or kn_pp (m_eff/mref_pp)^(2/3) if mref_pp > 0; walls kn_pw, mref_pw,
+    nearest wall) and gravitational (gvec, m/s²) energy of the groups it removes and creates, their contacts
+    included. With `conserve`, an event is accepted only if ΔE <= 0 (a crush gets its 4 placement attempts
+    first); otherwise it is deferred. `mass` (n_all,) kg; masses of new groups are the parents' by count.
+    `removed` (n,) marks parents; counts: [crushed, children, merged, crush deferred, merge deferred, conflicts];
+    de (2,) receives the summed ΔE (J) of the accepted crushes and merges.
     """
     np.random.seed(seed)  # noqa: NPY002 (Numba supports only the legacy API)
     rmax = 0.0
@@ -282,6 +436,8 @@ def group_events(
     m = 0
     for a in range(6):
         counts[a] = 0
+    de[0] = 0.0
+    de[1] = 0.0
     for i in range(n):
         removed[i] = False
     cap = new_n.size
@@ -307,15 +463,43 @@ def group_events(
         if _conflicts(pos[i, 0], pos[i, 1], pos[i, 2], ext, ev, n_ev):
             counts[5] += 1
             continue
+        # energy of the parent: its springs (others, nearest wall) and spin (translation: the children's is equal)
+        mi = mass[i]
+        e_old = _energy_static(pos[i, 0], pos[i, 1], pos[i, 2], R, mi, pos, diam, mass, i, i, lo, h, dims, head, nxt,
+                               rmax, kn_pp, mref_pp)  # fmt: skip
+        e_old += _energy_walls(pos[i, 0], pos[i, 1], pos[i, 2], R, mi, plane_p, plane_n, facets, nv, kn_pw, mref_pw)
+        w2 = omega[i, 0] ** 2 + omega[i, 1] ** 2 + omega[i, 2] ** 2
+        e_old += 0.5 * 0.1 * mi * diam[i] ** 2 * w2  # I = m d² / 10 (solid sphere, as `Particles`)
         ok = False
+        d_e = 0.0
         for _attempt in range(4):  # a few fresh attempts before deferring the crush
-            ok = _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, lo, h, dims, head, nxt, rmax,
-                                 plane_p, plane_n, facets, nv, kids)  # fmt: skip
+            ok = _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, 0.0 if conserve else 0.5 * tol,
+                                 lo, h, dims, head, nxt, rmax, plane_p, plane_n, facets, nv, kids)  # fmt: skip
+            if ok:
+                d_e = -e_old
+                for c in range(nk):
+                    rc = kids[c, 3]
+                    mc = mi * (rc / R) ** 3
+                    d_e += _energy_static(kids[c, 0], kids[c, 1], kids[c, 2], rc, mc, pos, diam, mass, i, i, lo, h,
+                                          dims, head, nxt, rmax, kn_pp, mref_pp)  # fmt: skip
+                    d_e += _energy_walls(kids[c, 0], kids[c, 1], kids[c, 2], rc, mc, plane_p, plane_n, facets, nv,
+                                         kn_pw, mref_pw)  # fmt: skip
+                    d_e += 0.5 * 0.1 * mc * (2.0 * rc) ** 2 * w2
+                    d_e -= mc * ((kids[c, 0] - pos[i, 0]) * gvec[0] + (kids[c, 1] - pos[i, 1]) * gvec[1]
+                                 + (kids[c, 2] - pos[i, 2]) * gvec[2])  # fmt: skip
+                    for b in range(c):
+                        dist = math.sqrt((kids[b, 0] - kids[c, 0]) ** 2 + (kids[b, 1] - kids[c, 1]) ** 2
+                                         + (kids[b, 2] - kids[c, 2]) ** 2)  # fmt: skip
+                        ov = rc + kids[b, 3] - dist
+                        if ov > 0.0:
+                            d_e += 0.5 * _stiffness(kn_pp, mref_pp, mc, mi * (kids[b, 3] / R) ** 3) * ov * ov
+                ok = d_e <= 0.0 or not conserve
             if ok:
                 break
         if not ok:
             counts[3] += 1
             continue
+        de[0] += d_e
         for c in range(nk):
             for a in range(3):
                 new_pos[m, a] = kids[c, a]
@@ -367,17 +551,28 @@ def group_events(
                                 rn = 0.5 * dn
                                 di = math.sqrt((x - pos[i, 0]) ** 2 + (y - pos[i, 1]) ** 2 + (z - pos[i, 2]) ** 2)
                                 dj = math.sqrt((x - pos[j, 0]) ** 2 + (y - pos[j, 1]) ** 2 + (z - pos[j, 2]) ** 2)
-                                ext = max(rn, di + ri, dj + rj)
+                                smax = 0.5 * min(ri, rj) if conserve else 0.0  # the centre may move off the c.o.m.
+                                ext = max(rn + smax, di + ri, dj + rj)
                                 if _conflicts(x, y, z, ext, ev, n_ev):
                                     counts[5] += 1
                                 elif m >= cap:
                                     counts[4] += 1
                                 else:
+                                    cx, cy, cz = x, y, z
+                                    if smax > 0.0:
+                                        x, y, z = _relax_merged(
+                                            x, y, z, rn, i, j, smax, dim2, pos, diam, lo, h, dims, head, nxt, rmax,
+                                            plane_p, plane_n, facets, nv,
+                                        )  # fmt: skip
                                     s = _overlap_static(x, y, z, rn, pos, diam, i, j, lo, h, dims, head, nxt, rmax)
                                     s = max(s, _overlap_walls(x, y, z, rn, plane_p, plane_n, facets, nv))
-                                    if s > tol:
+                                    d_e = _merge_energy(i, j, x, y, z, cx, cy, cz, rn, pos, vel, omega, diam, mass,
+                                                        lo, h, dims, head, nxt, rmax, plane_p, plane_n, facets, nv,
+                                                        kn_pp, mref_pp, kn_pw, mref_pw, gvec)  # fmt: skip
+                                    if s > tol or (conserve and d_e > 0.0):
                                         counts[4] += 1
                                     else:
+                                        de[1] += d_e
                                         new_pos[m, 0] = x
                                         new_pos[m, 1] = y
                                         new_pos[m, 2] = z

@@ -614,7 +614,11 @@ class DEM:
         return self.kinetic_energy() / n if n else 0.0
 
     def elastic_energy(self) -> float:
-        """Energy (J) stored in the normal springs of the particle-particle and particle-wall contacts (collective)."""
+        """Energy (J) stored in the normal springs of the particle-particle and particle-wall contacts (collective).
+
+        Each spring has the stiffness the force law gives it: k_n, or with per-pair group scaling
+        (`febed.dem.contact.GroupParams`, PCPM) k_n l² with l³ = m_eff / m_ref of that pair (a wall: m_i / m_ref).
+        """
         P = self.particles
         n = P.n_owned
         pl = self.pairs
@@ -626,10 +630,17 @@ class DEM:
         r = 0.5 * P.diameter
         delta = r[i] + r[j] - np.linalg.norm(P.pos[j] - P.pos[i], axis=1)
         share = np.where(j < n, 1.0, 0.5)  # a contact with a ghost is counted half here, half by its owner
-        e = 0.5 * self.pp.kn * float(np.sum(share * np.maximum(delta, 0.0) ** 2))
+        k = share * self.pp.kn
+        m_ref = getattr(self.pp, "m_ref", None)
+        if m_ref is not None:  # per-pair group scaling: k_n (m_eff / m_ref)^(2/3)
+            k = k * (1.0 / (m_ref / P.mass[i] + m_ref / P.mass[j])) ** (2.0 / 3.0)
+        e = 0.5 * float(np.sum(k * np.maximum(delta, 0.0) ** 2))
         W = self.walls
         if W.count:  # the nearest wall among each particle's candidates (the wall lists are current)
-            sq = wall_overlap_squares(P.pos, r, n, self.wstart, self.wid, W.plane_p, W.plane_n, W.facets, W.nv)
+            m_ref = getattr(self.pw, "m_ref", None)
+            scale = None if m_ref is None else (P.mass[:n] / m_ref) ** (2.0 / 3.0)
+            sq = wall_overlap_squares(P.pos, r, n, self.wstart, self.wid, W.plane_p, W.plane_n, W.facets, W.nv,
+                                      np.ones(n) if scale is None else scale)  # fmt: skip
             e += 0.5 * self.pw.kn * sq
         return self.global_sum(e)
 

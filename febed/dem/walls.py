@@ -345,8 +345,8 @@ def _nearest_walls(pos, count, plane_p, plane_n, facets, nv, out):
 
 
 @njit(cache=True)
-def wall_overlap_squares(pos, radius, n, wstart, wid, plane_p, plane_n, facets, nv):
-    """Σ_i max(r_i − distance to the nearest candidate wall, 0)² over the rows' wall candidate lists (m²)."""
+def wall_overlap_squares(pos, radius, n, wstart, wid, plane_p, plane_n, facets, nv, weight):
+    """Σ_i weight_i max(r_i − distance to the nearest candidate wall, 0)² over the rows' wall candidate lists (m²)."""
     total = 0.0
     for i in range(n):
         best = np.inf
@@ -355,7 +355,7 @@ def wall_overlap_squares(pos, radius, n, wstart, wid, plane_p, plane_n, facets, 
             if d < best:
                 best = d
         if radius[i] > best:
-            total += (radius[i] - best) ** 2
+            total += weight[i] * (radius[i] - best) ** 2
     return total
 
 
