@@ -332,7 +332,7 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
                     f"[gas.boundary.{tag}] wins_over = {w!r}: [gas.boundary.{w}] must be a no-slip wall "
                     "(type = 'wall', slip = false)"
                 )
-            elif other is None or other.as_dict().get("wall_law", "brinkman") != "no_slip":
+            elif other is not None and other.as_dict().get("wall_law", "brinkman") != "no_slip":
                 problems.append(
                     f"[gas.boundary.{tag}] wins_over = {w!r}: [gas.boundary.{w}] must set wall_law = 'no_slip' "
                     "(an inlet already shares its nodes with a wall of the porous wall law by facet)"
