@@ -9,10 +9,12 @@ Each named facet tag gets a `BoundarySpec`:
   the whole cross-section, so the open part carries U_f A_total / A_open, DESIGN.md "Readings").
   Where the inlet meets a wall with the porous wall law (below, the default), the shared nodes are the
   inlet's, each with the share f_j = B_j^inlet·n / (B_j^inlet + B_j^wall)·n of its boundary weight that the
-  inlet facets give (1/2 at the edge of a coplanar wall patch on a uniform mesh, 1 at a corner with a wall
-  normal to it), and the velocity U_o f_j n: the gas then enters through exactly the inlet's facets
-  (A_open = Σ_j f_j B_j·n is the inlet's own area), so the gas-free strip over a wall patch is the patch
-  itself on every mesh. Where the inlet meets a strict no-slip wall (`wall_law = "no_slip"`), no-slip wins;
+  inlet facets give (1/2 at the edge of a coplanar wall patch on a uniform mesh), and the velocity
+  U_o f_j n: the gas then enters through exactly the inlet's facets (A_open = Σ_j f_j B_j·n is the inlet's
+  own area), so the gas-free strip over a wall patch is the patch itself on every mesh. At a corner with a
+  wall-law wall across the inlet (a side wall) the weight is f_j times that wall's slide s_j = λ/δ (0 in
+  clear gas, where the corner is held like the wall; 1 − 2δ/h in a packed bed), from the drag of each step.
+  Where the inlet meets a strict no-slip wall (`wall_law = "no_slip"`), no-slip wins;
   with `wins_over` (strict no-slip wall tags) those shared nodes take the inlet's velocity instead (they
   stay no-slip if they also touch another strict no-slip wall). A node-based no-slip condition cannot give a
   wall patch exactly its cells: with no-slip at the patch's edge nodes the inflow ramps from U to 0 over
@@ -31,7 +33,7 @@ Each named facet tag gets a `BoundarySpec`:
   flow deficit U δ (and so the wall shear ε μ_eff U/δ = K U δ) of its continuous solution
   u = U (1 − e^{−y/δ}), for any h/δ: λ → δ when δ ≪ h (a packed bed: the Navier slip of Brinkman's
   equation at a wall, Brinkman 1947; the form of Beavers & Joseph's 1967 slip condition), and
-  λ → h²/(8δ) → 0 when δ ≫ h (clear gas: no-slip, the nodes held at rest to within 1e-12 of the flow). The
+  λ → h²/(8δ) → 0 when δ ≫ h (clear gas: no-slip, the nodes held at rest to round-off). The
   shear is implicit, like the drag and a partial slip's (`wall_friction`), and it also damps the wall
   nodes' pressure correction by 1/(1 + c_i Δt/(ρ ε_i)), so that in clear gas the wall nodes stay at rest
   after the correction too. `wall_law = "no_slip"` holds the wall nodes at rest (q = 0) whatever the drag.
@@ -324,6 +326,9 @@ class _Inlet:
 
     def _update_area(self) -> None:
         self.a_open = self.comm.allreduce(float(np.dot(self.weight, self._flux)), op=MPI.SUM)
+        if self.a_open <= 1e-9 * self.comm.allreduce(float(np.dot(self.share, self._flux)), op=MPI.SUM):
+            self.weight = self.share.copy()  # an inlet of corners only (one cell wide): they carry the inflow
+            self.a_open = self.comm.allreduce(float(np.dot(self.weight, self._flux)), op=MPI.SUM)
 
     def speed(self, t: float) -> float:
         """U_f at time t (the ramp applied) [m/s]."""
