@@ -1,14 +1,16 @@
-"""The pressure-increment Poisson solve: a constant stiffness matrix and its AMG preconditioner, set up once.
+"""The pressure-increment Poisson solve: a constant stiffness matrix and its factorisation or AMG, set up once.
 
 (Optionally the operator is the drag-weighted Laplacian of each step, `_WeightedOperator`, still
 preconditioned by the constant matrix's AMG; `VANSParameters.drag_weighted_projection`.)
 
-Following YALES2 (DESIGN.md "Data flow" step 3), the gas momentum carries −∇P and the particles −V_p∇P,
+Following YALES2 (docs/theory.md, data flow, the gas step), the gas momentum carries −∇P and the particles −V_p∇P,
 so the operator of seed 001 eq 39 is the constant Laplacian L_ij = ∫ ∇φ_i·∇φ_j dx. It is assembled once,
 with unit rows at the outlet (pressure) nodes, and its KSP (default CG + algebraic multigrid) is set up once;
 every step only writes the right-hand side and solves from the previous solution. Without any pressure
 node the constant null space is attached and removed from the right-hand side.
 
+On one process, with a pressure outlet and at most `DIRECT_MAX_NODES` nodes, the default is a sparse Cholesky
+factorisation of L made once (two triangular solves per step); otherwise CG with algebraic multigrid.
 Solver options come from the PETSc options database under the prefix given (default `febed_pressure_`),
 e.g. `-febed_pressure_pc_type gamg`, or a direct factorisation set up once (fast on small meshes):
 `-febed_pressure_ksp_type preonly -febed_pressure_pc_type cholesky -febed_pressure_pc_factor_mat_solver_type
@@ -35,16 +37,39 @@ from febed.gas import kernels
 # per warm-started solve on this machine). Falls back to GAMG when PETSc was built without ML. On more
 # than one rank the default is GAMG (19-21 ms per gas step on 2 ranks against 17 ms with ML): with Debian's
 # PETSc 3.18 and ML, a process under `mpirun -n 2` that sets up a few ML solvers corrupts its heap and
-# aborts (SEGV or "malloc(): invalid size" at the 2nd to 10th solver kept alive, reproduced again in
-# session 8; serially 60 are fine). GAMG without the squared graph on the first level
-# (`pc_gamg_square_graph 0`) coarsens less aggressively: fewer iterations; on 2 ranks the fluidized C2's gas
-# took 4.30 instead of 4.80 min per simulated second (ML: 4.01), the start-up window 2.08 instead of 2.26.
+# aborts (SEGV or "malloc(): invalid size" at the 2nd to 10th solver kept alive; serially 60 are fine).
+# GAMG without the squared graph on the first level (`pc_gamg_square_graph 0`) coarsens less aggressively:
+# fewer iterations; on 2 ranks the fluidized C2's gas took 4.30 instead of 4.80 min per simulated second
+# (ML: 4.01), the start-up window 2.08 instead of 2.26.
 DEFAULT_OPTIONS = {
     "ksp_type": "cg",
     "pc_type": "ml",
     "mg_levels_ksp_max_it": 1,
 }
 FALLBACK_OPTIONS = {"pc_type": "gamg", "pc_gamg_square_graph": 0}
+# One process and at most this many nodes with a pressure outlet: a sparse Cholesky factorisation (PETSc's own,
+# nested-dissection ordering) of the constant L, made once; every step is then two triangular solves. On the
+# seed-001 intermediate mesh (28,000 nodes, hexahedra) the pressure solve costs half of CG + ML's, on seed 000's
+# 2D bed (1,900 nodes) a fifth, for ~40 MB more memory (benchmarks/gas_step.py). Larger
+# meshes, parallel runs, closed domains (singular L) and the drag-weighted projection keep CG + AMG.
+DIRECT_MAX_NODES = 50_000
+DIRECT_OPTIONS = {"ksp_type": "preonly", "pc_type": "cholesky"}
+
+
+_DEFAULTS_WRITTEN: set[str] = set()  # option names febed (not the user) put into PETSc's options database
+
+
+def _user_set(opts, name: str) -> bool:
+    """Whether the user gave the PETSc option `name` (not a default a solver of this process wrote)."""
+    return opts.hasName(name) and name not in _DEFAULTS_WRITTEN
+
+
+def _write_defaults(opts, prefix: str, defaults: dict) -> None:
+    """Put `defaults` into the options database under `prefix`, leaving alone every option the user gave."""
+    for key, val in defaults.items():
+        if not _user_set(opts, prefix + key):
+            opts[prefix + key] = val
+            _DEFAULTS_WRITTEN.add(prefix + key)
 
 
 class PressureSolveError(RuntimeError):
@@ -110,11 +135,17 @@ class PressureSolver:
         self.b = dolfinx.la.create_petsc_vector(imap, 1)
         self.x = dolfinx.la.create_petsc_vector(imap, 1)
         opts = PETSc.Options()
-        user_pc = opts.hasName(prefix + "pc_type")
-        defaults = DEFAULT_OPTIONS if comm.size == 1 else {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS}
-        for key, val in defaults.items():
-            if not opts.hasName(prefix + key):
-                opts[prefix + key] = val
+        user_pc = _user_set(opts, prefix + "pc_type")
+        direct = (
+            comm.size == 1
+            and has_dirichlet
+            and ops is None
+            and imap.size_global <= DIRECT_MAX_NODES
+            and not (user_pc or _user_set(opts, prefix + "ksp_type"))
+        )
+        if not direct:
+            defaults = DEFAULT_OPTIONS if comm.size == 1 else {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS}
+            _write_defaults(opts, prefix, defaults)
         self.ksp = PETSc.KSP().create(comm)
         self.ksp.setOptionsPrefix(prefix)
         self.weighted = None
@@ -133,9 +164,11 @@ class PressureSolver:
         except PETSc.Error:
             if user_pc:
                 raise
-            for key, val in FALLBACK_OPTIONS.items():
-                opts[prefix + key] = val
+            _write_defaults(opts, prefix, FALLBACK_OPTIONS)
             self.ksp.setFromOptions()
+        if direct:  # set on this solver only: the options database keeps what another solver may need
+            self.ksp.setType(DIRECT_OPTIONS["ksp_type"])
+            self.ksp.getPC().setType(DIRECT_OPTIONS["pc_type"])
         if self.ksp.getType() != PETSc.KSP.Type.PREONLY:
             self.ksp.setInitialGuessNonzero(True)  # warm start from the previous increment
             if not opts.hasName(prefix + "ksp_norm_type"):

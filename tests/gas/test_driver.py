@@ -169,9 +169,13 @@ def test_gas_run_stops_on_a_signal_with_a_checkpoint(mpi_tmp_path):
 @pytest.mark.parametrize("what", ["diverged", "nan"])
 def test_gas_run_failure_stops_with_message_and_last_good_state(mpi_tmp_path, what):
     comm = MPI.COMM_WORLD
-    if what == "diverged":  # a time step ~40 times the stable one: the pressure solve diverges (NaN)
+    if what == "diverged":  # a time step ~40 times the stable one: the flow blows up within a few steps
         case = gas_case(mpi_tmp_path, end=0.05, velocity=3.0, cfl=20.0, dt_max=0.01, les="none")
-        message = "the pressure solve did not converge .* in the gas step from t = "
+        # CG reports the non-finite right-hand side; a direct solve (one process) passes it on to the velocity
+        message = (
+            r"the pressure solve did not converge .* in the gas step from t = "
+            r"|gas (velocity u|pressure p) is not finite at the node at \[.*\] m at t = "
+        )
     else:
         case = gas_case(mpi_tmp_path, end=0.05)
         message = r"gas pressure p is not finite at the node at \[.*\] m at t = .* \(gas step 13\)"

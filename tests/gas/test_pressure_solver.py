@@ -1,0 +1,78 @@
+"""The pressure Poisson solver's default: a Cholesky factorisation on small serial meshes, CG + AMG otherwise.
+
+Both must give the same increment φ to the iterative tolerance; a user's PETSc options always win, and one
+solver's choice never leaks into the next through PETSc's global options database.
+"""
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import dolfinx
+import numpy as np
+import pytest
+
+from febed.gas import pressure
+from febed.gas.pressure import PressureSolver
+
+
+def _space(n=12):
+    mesh = dolfinx.mesh.create_unit_square(MPI.COMM_WORLD, n, n, dolfinx.mesh.CellType.quadrilateral)
+    Q = dolfinx.fem.FunctionSpace(mesh, ("Q", 1))
+    top = dolfinx.mesh.locate_entities_boundary(mesh, 1, lambda x: np.isclose(x[1], 1.0))
+    dofs = dolfinx.fem.locate_dofs_topological(Q, 1, top)
+    return Q, dofs
+
+
+def _rhs(Q):
+    x = Q.tabulate_dof_coordinates()[: Q.dofmap.index_map.size_local]
+    return np.sin(3.0 * x[:, 0]) * np.cos(2.0 * x[:, 1]) + x[:, 1]
+
+
+@pytest.mark.mpi
+def test_direct_and_iterative_agree_and_options_do_not_leak(monkeypatch):
+    comm = MPI.COMM_WORLD
+    Q, dofs = _space()
+    b = _rhs(Q)
+    direct = PressureSolver(Q, dofs, True, "febed_test_direct_")
+    expect_direct = comm.size == 1
+    assert (direct.ksp.getType() == PETSc.KSP.Type.PREONLY) == expect_direct
+    assert (direct.ksp.getPC().getType() == "cholesky") == expect_direct
+    phi_d, _ = direct.solve(b, 1e-12, 1e-300)
+    # the same problem, too large for the direct default: CG + AMG to a tight tolerance
+    monkeypatch.setattr(pressure, "DIRECT_MAX_NODES", 10)
+    cg = PressureSolver(Q, dofs, True, "febed_test_direct_")  # same prefix: nothing left behind by `direct`
+    assert cg.ksp.getType() == PETSc.KSP.Type.CG
+    phi_i, its = cg.solve(b, 1e-12, 1e-300)
+    assert its > 1
+    n = Q.dofmap.index_map.size_local
+    err = comm.allreduce(float(np.max(np.abs(phi_d[:n] - phi_i[:n]), initial=0.0)), op=MPI.MAX)
+    scale = comm.allreduce(float(np.max(np.abs(phi_i[:n]), initial=0.0)), op=MPI.MAX)
+    assert err <= 1e-9 * scale
+    # the residual of the factorised solve is round-off
+    assert abs(direct.residual_sum()) < 1e-10 * comm.allreduce(float(np.abs(b).sum()))
+    # CG's defaults, now in the options database, are febed's and not the user's: a small mesh is factorised again
+    monkeypatch.setattr(pressure, "DIRECT_MAX_NODES", 50_000)
+    again = PressureSolver(Q, dofs, True, "febed_test_direct_")
+    assert (again.ksp.getType() == PETSc.KSP.Type.PREONLY) == expect_direct
+    for s in (direct, cg, again):
+        s.destroy()
+
+
+def test_user_options_keep_the_iterative_solver():
+    Q, dofs = _space(6)
+    opts = PETSc.Options()
+    opts["febed_test_user_pc_type"] = "jacobi"
+    try:
+        s = PressureSolver(Q, dofs, True, "febed_test_user_")
+        assert s.ksp.getType() == PETSc.KSP.Type.CG and s.ksp.getPC().getType() == "jacobi"
+        s.destroy()
+    finally:
+        opts.delValue("febed_test_user_pc_type")
+
+
+def test_closed_domain_keeps_the_iterative_solver():
+    """Without a pressure node L is singular (constant null space): no factorisation."""
+    Q, _ = _space(6)
+    s = PressureSolver(Q, np.zeros(0, dtype=np.int32), False, "febed_test_closed_")
+    assert s.ksp.getType() == PETSc.KSP.Type.CG
+    s.destroy()
