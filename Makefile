@@ -51,6 +51,7 @@ bench: setup
 lint: setup
 	$(VENV)/bin/ruff check febed tests benchmarks demos
 	$(VENV)/bin/ruff format --check --quiet febed tests benchmarks demos
+	$(PY) tools/check_language.py
 
 clean:
 	rm -rf $(VENV) .venv/numba-cache

@@ -2,7 +2,7 @@
 
 One registry per kind of closure. A closure module registers each law with a decorator; the case
 schema asks the registry for the valid names, so a new law is one function and one decorator line and
-the case validation learns its name by itself (STYLE.md item 6).
+the case validation learns its name by itself.
 
 Example:
     >>> DRAG = Registry("drag law", "febed.coupling.drag")

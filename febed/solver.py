@@ -1,6 +1,6 @@
 """The coupled CFD-DEM time loop: the one place that knows the order of operations (seed 001 sec 2.4).
 
-One gas step of size Δt (time-staggered, DESIGN.md "Data flow"):
+One gas step of size Δt (time-staggered; docs/theory.md, data flow):
 
 1. **Particles** (`advance_particles`): with the gas fields of step n frozen, `n_sub` DEM sub-steps of
    Δt/n_sub ≤ T_C/dt_factor. The particles are located in the mesh (walk from the previous cell) and u, ε,

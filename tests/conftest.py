@@ -1,4 +1,4 @@
-"""Shared pytest fixtures: MPI-safe temporary folders and collective teardown (STYLE.md item 2)."""
+"""Shared pytest fixtures: MPI-safe temporary folders and collective teardown."""
 
 import gc
 import logging

@@ -1,4 +1,4 @@
-"""Coarse-graining and one-way runs from case files (issue 8): what is inserted, checks, a coupled PCPM run."""
+"""Coarse-graining and one-way runs from case files: what is inserted, checks, a coupled PCPM run."""
 
 import json
 import math

@@ -1,11 +1,11 @@
-"""Coupled runs on 2 ranks against serial, restarts across rank counts, SIGUSR1 under mpirun (issues 6, 7).
+"""Coupled runs on 2 ranks against serial, restarts across rank counts, SIGUSR1 under mpirun.
 
 Each run is a separate `febed run` process (under `mpirun -n 2` where it says so), as users run them. The
 pressure preconditioner is hypre BoomerAMG: GAMG's parallel aggregation is not reproducible from run to
 run, BoomerAMG's is (README, "Known limitations"; ML is too, but hung once in a 2-rank test run). A
 fluidized bed is chaotic: a round-off difference (summation order on 2 ranks) grows about tenfold per
 simulated millisecond once the bed moves, so serial and 2-rank runs are compared over the first 0.01 s,
-where they must agree to 1e-8: in 200 gas steps of 5e-5 s (issue 6 asks 200 gas steps; at the case's own
+where they must agree to 1e-8: in 200 gas steps of 5e-5 s (at the case's own
 2e-4 s those would reach 0.04 s, where the two realizations of round-off have long parted).
 """
 

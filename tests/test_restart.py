@@ -1,4 +1,4 @@
-"""Runs that survive: exact restart, crash-safe checkpoints, failure detection, signals, progress (issue 7).
+"""Runs that survive: exact restart, crash-safe checkpoints, failure detection, signals, progress.
 
 All runs use the seed-000 2D bed of demos/wang2d (its committed packed bed) for a few hundredths of a
 second: long enough for the bed to move, rebuild its neighbour lists and re-sort its particles.

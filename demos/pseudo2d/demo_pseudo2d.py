@@ -15,7 +15,9 @@
 # * the bed pressure drop against the bed weight per cross-section, and the bed height, over time.
 #
 # Usage: `.venv/bin/python demos/pseudo2d/demo_pseudo2d.py [--case C1.toml] [--end-time 3.0]
-# [--window T0 T1] [--post-only]`. The packed bed is made once (`febed run pack-75g.toml`, or automatically).
+# [--window T0 T1] [--post-only] [--figures DIR]`. The run goes to `out/<case>/`, its figures are copied to
+# `out/figures/` (`--figures figures` updates the ones in `figures/` shown by the README). The packed bed is
+# made once (`febed run pack-75g.toml`, or automatically).
 #
 # Checks at the end: the deposited particle volume equals the bed's (always); with at least 1 s of averaging,
 # the time-averaged pressure drop is within 5 % of the bed weight per cross-section, and the solid moves up
@@ -39,6 +41,9 @@ parser.add_argument("--case", default="C1.toml", help="case file in this folder"
 parser.add_argument("--end-time", type=float, default=3.0, help="simulated seconds (s)")
 parser.add_argument("--window", type=float, nargs=2, help="averaging window (s); default the last 2/3")
 parser.add_argument("--post-only", action="store_true", help="post-process an existing out/<case> folder")
+parser.add_argument(
+    "--figures", default=str(HERE / "out" / "figures"), help="folder the PNG figures are copied to (<case>_*.png)"
+)
 args = parser.parse_args()
 
 # ## Run
@@ -65,8 +70,8 @@ t_last = list_snapshots(out)[-1][0]
 window = tuple(args.window) if args.window else (t_last / 3.0, t_last)
 res = post_run(out, window=window)
 avg, v = res.fields, res.values
-figs = HERE / "figures"
-figs.mkdir(exist_ok=True)
+figs = Path(args.figures)
+figs.mkdir(parents=True, exist_ok=True)
 for f in res.files:
     if f.suffix == ".png":
         shutil.copy(f, figs / f"{name}_{f.name}")

@@ -12,7 +12,7 @@
 # The Wen–Yu/Ergun minimum fluidization velocity of these particles is about 0.49 m/s, so at 0.9 m/s the
 # bed must fluidize: once started, the gas carries the whole bed, so the time-averaged pressure drop across
 # it equals the bed weight per cross-section, W/A = N m_p g / (L_x × depth), with the depth of a 2D case one
-# particle diameter (DESIGN.md "Readings").
+# particle diameter (docs/theory.md, 2D cases).
 
 import argparse
 import logging

@@ -103,9 +103,9 @@ def gidaspow_blend(eps, slip, d, rho_g, mu_g):
 def emms_heterogeneity(eps, re):
     """EMMS heterogeneity index H_d = a (Re_p + b)^c with a, b, c from seed 000 Table 1 (eq 6).
 
-    ε is clamped into [0.4, 1] (DESIGN.md "Readings"). Two signs are read differently from the printed table,
-    which otherwise gives H_d < 0 for 0.46 < ε < 0.53 and a pole at ε = 0.9942: in 0.46 <= ε < 0.545,
-    a = 0.0320 + 0.7399/(1 + (ε/0.4912)^54.4265) (printed "-"; "+" joins the neighbouring ranges to within
+    ε is clamped into [0.4, 1], the range of the table (docs/theory.md, drag). Two signs are read differently from
+    the printed table, which otherwise gives H_d < 0 for 0.46 < ε < 0.53 and a pole at ε = 0.9942: in 0.46 <= ε <
+    0.545, a = 0.0320 + 0.7399/(1 + (ε/0.4912)^54.4265) (printed "-"; "+" joins the neighbouring ranges to within
     4 % at ε = 0.46 and 0.545), and in 0.99 <= ε < 0.9997 the logistic factor is 0.8800/(1 + exp(-(ε -
     0.9942)/0.00218)) (printed "1 - exp", which divides by zero at 0.9942).
     """
@@ -361,7 +361,7 @@ def terminal_velocity(law, d: float, rho_p: float, rho_g: float, mu_g: float, g:
     """Settling speed (m/s) of one sphere in still gas: K(v_t) v_t = (ρ_p - ρ_g) V g (drag = weight - buoyancy).
 
     Buoyancy is the pressure-gradient force -V ∇p of the hydrostatic gas (seed 001 eq 27). `law` is a name or
-    a registered law; solved by bisection to 1e-12 relative. Reference value for the settling check of issue 5.
+    a registered law; solved by bisection to 1e-12 relative. Reference value for the settling checks.
     """
     if isinstance(law, str):
         law = get_drag_law(law)

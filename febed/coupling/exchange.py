@@ -1,4 +1,4 @@
-"""Coupling steps for the time loop (`febed/solver.py`; DESIGN.md "Data flow", seed 001 §2.3-2.4).
+"""Coupling steps for the time loop (`febed/solver.py`; docs/theory.md, data flow; seed 001 §2.3-2.4).
 
 At the start of a gas step (gas fields of step n frozen over its DEM sub-steps):
     `Coupler.locate(x)`            -> cells and weights (one pass); particles outside the local mesh reported

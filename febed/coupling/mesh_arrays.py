@@ -258,7 +258,7 @@ def extract_mesh_arrays(mesh, Q=None, depth: float = 1.0) -> MeshArrays:
     Args:
         mesh: dolfinx.mesh.Mesh of triangles, quadrilaterals, tetrahedra or hexahedra (affine geometry).
         Q: dolfinx.fem.FunctionSpace(mesh, ("Lagrange", 1)); created when None.
-        depth: 2D only: depth (m) turning cell areas into volumes (DESIGN.md "Readings"); ignored in 3D.
+        depth: 2D only: depth (m) turning cell areas into volumes (docs/theory.md, 2D cases); ignored in 3D.
 
     Returns:
         MeshArrays; collective over the mesh communicator.

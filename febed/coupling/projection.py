@@ -3,7 +3,7 @@
 Seed 001 eqs 29-30: Σ_p ω_{p,i} q_p onto the nodes i of the cell holding p (extensive nodal sums), then the
 neighbour filter (eqs 31-34), then division by the node control volume ΔV_i = ∫φ_i dx.
 
-Filter reading (DESIGN.md "Readings"): the intensive filter of eq 31 is node -> cell -> node,
+Filter reading (docs/theory.md, interpolation and projection): the intensive filter of eq 31 is node -> cell -> node,
     Φ̂_i = Σ_{K∋i} (S_{K,i}/ΔV_i) Φ_K,  Φ_K = (1/|K|) Σ_{j∈K} S_{K,j} Φ_j   (S_{K,i} = ∫_K φ_i dx),
 i.e. the cell value is the exact cell mean of the P1/Q1 field; on simplices S_{K,i} = |K|/(d+1) and it is
 eq 31 itself, on uniform grids eqs 32-33. It is applied to extensive sums E_j = ΔV_j Φ_j in its transposed,

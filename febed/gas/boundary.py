@@ -6,7 +6,7 @@ Each named facet tag gets a `BoundarySpec`:
   inward normal of the tag. The nodal superficial velocity q = ε u is scaled so that the discrete inflow
   Σ_j q_j·(−B_j) over the inlet nodes (B_j = ∫_∂Ω φ_j n ds) is exactly U_f A, whatever ε is there. A is the
   tag's area plus the areas of `cross_section_tags` (seed 001's bottom-wall patch: U_f is defined over
-  the whole cross-section, so the open part carries U_f A_total / A_open, DESIGN.md "Readings").
+  the whole cross-section, so the open part carries U_f A_total / A_open; seed 001 §3.2).
   Where the inlet meets a wall with the porous wall law (below, the default), the shared nodes are the
   inlet's, each with the share f_j = B_j^inlet·n / (B_j^inlet + B_j^wall)·n of its boundary weight that the
   inlet facets give (1/2 at the edge of a coplanar wall patch on a uniform mesh), and the velocity

@@ -477,7 +477,7 @@ def describe_run(outdir: Path) -> str:
         if pid is not None:
             head += f" (process {pid} on this machine)"
         elif "pid" not in info:
-            head += " (written by a febed before session 10: whether its process is alive is not known)"
+            head += " (written by an older febed that does not record its process: whether it is alive is not known)"
         elif info.get("host") != socket.gethostname():
             head += f" on {info['host']} (cannot check from here)"
         elif Path(f"/proc/{info['pid']}").exists():

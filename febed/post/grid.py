@@ -2,7 +2,7 @@
 
 The grid covers the domain box in the plane (x, z) in 3D — each bin spans the whole depth y, so a bin
 value is the depth average ⟨ψ⟩_xz of seed 001 §4 — and (x, y) in 2D, where the bin volume uses the
-case's depth (DESIGN.md: one particle diameter by default). Bin volume ΔV = Δx Δz D.
+case's depth (one particle diameter by default; docs/theory.md, 2D cases). Bin volume ΔV = Δx Δz D.
 
 Kernels (how a particle's volume is shared among bins; the weights of one particle sum to 1):
 

@@ -163,7 +163,7 @@ def run_info(run_dir: str | Path, box: tuple | None = None) -> RunInfo:
     if dim == 3:
         depth = float(hi[1] - lo[1])
     else:
-        depth = float(_get(case, "mesh.depth", 0.0)) or d_p  # DESIGN.md: 2D depth defaults to one diameter
+        depth = float(_get(case, "mesh.depth", 0.0)) or d_p  # a 2D case's depth defaults to one diameter
     return RunInfo(
         run_dir=run_dir,
         dim=dim,

@@ -1,5 +1,5 @@
 """The PCPM 2D bed of seed 000 (`demos/wang2d/coarse/pcpm2.toml`: 1,020 groups of 8 originals, 0.9 m/s)
-runs 1 s stably on 1 and 2 ranks (slow, `make test-all`; issue 8's check).
+runs 1 s stably on 1 and 2 ranks (slow, `make test-all`).
 
 Stable: the run finishes (no particle outside the mesh, no overlap above `run.max_overlap`, no NaN: any of
 these stops a run with exit status 3), every original is still in a group, and the energy the events inject

@@ -1,5 +1,5 @@
 """PCPM events conserve energy: the elastic energy with the group-scaled stiffness, a merge and a crush on
-hand-built groups (energy never gained, count and momentum exact), and seed 000's bed (issue 28's check)."""
+hand-built groups (energy never gained, count and momentum exact), and seed 000's bed."""
 
 import logging
 import math

@@ -1,4 +1,4 @@
-"""The PCPM criteria kernels against a plain-Python reference on random groups (issue 28's first check).
+"""The PCPM criteria kernels against a plain-Python reference on random groups.
 
 d_cl (seed 000 eqs 32-39) to 1e-12 with "no crushing" at the same groups; the crush sizes (eqs 40-42); and the
 decisions of `GroupDynamics.apply` (which groups crush into which children, which touching pairs merge: eq 44,

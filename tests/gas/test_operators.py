@@ -1,4 +1,4 @@
-"""The Numba sweeps over the constant nodal operators against plain UFL assembly (STYLE.md item 5)."""
+"""The Numba sweeps over the constant nodal operators against plain UFL assembly."""
 
 from mpi4py import MPI
 

@@ -102,9 +102,8 @@ def test_c1_with_slipping_front_and_back_walls_pressure_drop(c1_slip_front_back)
 @pytest.mark.slow
 def test_c1_with_slipping_front_and_back_walls_force_balance(c1_slip_front_back):
     """Without gas shear on the front and back walls nothing else holds the bed: the pressure drop and the
-    bottom's contacts carry its weight (measured 0.905 + 0.108 = 1.013 over 1.0-2.5 s; this test's own 3 s run,
-    session 10: 0.912 + 0.099 = 1.011 over 1-3 s, flux +55 / -72, bubble fraction 0.25, 21 min with a
-    C2 run on the other core)."""
+    bottom's contacts carry its weight (measured 0.905 + 0.108 = 1.013 over 1.0-2.5 s; this test's own 3 s run:
+    0.912 + 0.099 = 1.011 over 1-3 s, flux +55 / -72, bubble fraction 0.25; about 20 min)."""
     v = c1_slip_front_back.values
     held = v["dp_bed_over_weight"] + v["bottom_support/W"]
     assert abs(held - 1.0) < 0.03, (v["dp_bed_over_weight"], v["bottom_support/W"])
@@ -130,7 +129,7 @@ def c1_partial_slip_front_back(tmp_path_factory):
 
 @pytest.mark.slow
 def test_c1_with_partial_slip_front_and_back_walls_circulates_seed_001s_way(c1_partial_slip_front_back):
-    """Navier partial slip (slip length 1 mm) on the front and back walls, side walls no-slip (session 14): the
+    """Navier partial slip (slip length 1 mm) on the front and back walls, side walls no-slip: the
     bed bubbles, stays two-dimensional and turns seed 001's way, and the walls' shear carries part of the
     weight that free slip leaves to the pressure drop alone (measured over 1-3 s: +53 / -67 rho U_f,
     bubble fraction 0.248, spreads 0.004 / 0.004 U_f, dp 0.932 W + bottom 0.092 W = 1.024)."""
@@ -161,11 +160,11 @@ def c1_partial_slip_edges(tmp_path_factory):
 
 @pytest.mark.slow
 def test_c1_with_every_wall_partial_slip_and_the_inlet_over_the_patch_edges(c1_partial_slip_edges):
-    """Every wall partial slip (1 mm) and the inlet taking the patch's edge nodes (`wins_over`, session 17):
+    """Every wall partial slip (1 mm) and the inlet taking the patch's edge nodes (`wins_over`):
     the heap on the bottom halves and, over 1-3 s, the bed circulates seed 001's way with the pressure drop
     within 5 % of its weight (measured: +23 / -36 rho U_f, dp 0.956 W + bottom 0.048 W = 1.004). Narrowly:
     its first 1.5 s circulate the other way, and over 1.5-3 s dp is 0.942 W; continued to 5 s, 0.951-0.954 W over
-    2-5, 3-5 and 1-5 s (demos/pseudo2d/README.md). This test's own run, session 17: passed, 28 min."""
+    2-5, 3-5 and 1-5 s (demos/pseudo2d/README.md). This test takes about 30 min."""
     v = c1_partial_slip_edges.values
     centre, walls = v["bed_flux_centre/rhoUf"], v["bed_flux_walls/rhoUf"]
     assert centre > 0.0 > walls, (centre, walls)
