@@ -64,7 +64,7 @@ Model choices (and why):
   relaxes geometrically with ratio D/(1 + D) per step after any change of the drag: bounded, but at D ≈
   1-2 a bubbling bed's pressure trails its drag by most of a step, and the seed-001 coarse-mesh bed
   circulates the wrong way at Δt = 2e-4 s, but not at 5e-5 s nor with ten passes (below) at 2e-4 s; the
-  drag-weighted projection alone does not remove that (demos/pseudo2d/README.md). With
+  drag-weighted projection alone does not remove that (docs/examples/pseudo2d.md). With
   `pressure_passes` = m > 1 the step repeats the predictor with the corrected pressure (only −∇p
   changed: q* −= G φ/(ΔV (1 + D)), no new convection or viscous terms) and solves the Poisson equation
   again, m times in all: the plain projection's lag becomes (D/(1 + D))^m per step. The mass balance

@@ -68,7 +68,7 @@ def test_c1_bubbles_and_is_two_dimensional(c1):
     strict=True,
     reason="febed's C1 (coarse mesh, wall law) circulates the other way for its first ~3 s and seed 001's way "
     "after: bed-averaged vertical solid flux over 1-5 s -22 rho U_f in the centre, +6 at the walls (1-3 s: "
-    "-83 / +63; 3-5 s: +38 / -50); demos/pseudo2d/README.md",
+    "-83 / +63; 3-5 s: +38 / -50); docs/examples/pseudo2d.md",
 )
 def test_c1_circulation_up_the_centre_down_the_walls(c1):
     v = c1.values
@@ -93,7 +93,7 @@ def test_c1_with_slipping_front_and_back_walls_circulates_seed_001s_way(c1_slip_
     strict=True,
     reason="with the front and back walls slipping the gas carries 0.905 of the bed weight (1.0-2.5 s; 0.907 "
     "with frictionless walls): the bottom holds 0.108 by contact, a heap on the coarse mesh's patch (17.6 % of "
-    "the bottom); demos/pseudo2d/README.md",
+    "the bottom); docs/examples/pseudo2d.md",
 )
 def test_c1_with_slipping_front_and_back_walls_pressure_drop(c1_slip_front_back):
     assert abs(c1_slip_front_back.values["dp_bed_over_weight"] - 1.0) < 0.05
@@ -147,7 +147,7 @@ def test_c1_with_partial_slip_front_and_back_walls_circulates_seed_001s_way(c1_p
     strict=True,
     reason="with partial slip (1 mm) on the front and back walls the gas carries 0.932 of the bed weight over "
     "1-3 s (0.905 with free slip): the bottom still holds 0.092 by contact, the heap on the coarse patch; "
-    "demos/pseudo2d/README.md",
+    "docs/examples/pseudo2d.md",
 )
 def test_c1_with_partial_slip_front_and_back_walls_pressure_drop(c1_partial_slip_front_back):
     assert abs(c1_partial_slip_front_back.values["dp_bed_over_weight"] - 1.0) < 0.05
@@ -164,7 +164,7 @@ def test_c1_with_every_wall_partial_slip_and_the_inlet_over_the_patch_edges(c1_p
     the heap on the bottom halves and, over 1-3 s, the bed circulates seed 001's way with the pressure drop
     within 5 % of its weight (measured: +23 / -36 rho U_f, dp 0.956 W + bottom 0.048 W = 1.004). Narrowly:
     its first 1.5 s circulate the other way, and over 1.5-3 s dp is 0.942 W; continued to 5 s, 0.951-0.954 W over
-    2-5, 3-5 and 1-5 s (demos/pseudo2d/README.md). This test takes about 30 min."""
+    2-5, 3-5 and 1-5 s (docs/examples/pseudo2d.md). This test takes about 30 min."""
     v = c1_partial_slip_edges.values
     centre, walls = v["bed_flux_centre/rhoUf"], v["bed_flux_walls/rhoUf"]
     assert centre > 0.0 > walls, (centre, walls)
