@@ -11,20 +11,22 @@ IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
 SUDO    := $(if $(IS_ROOT),,sudo)
 MPIRUN  := mpirun $(if $(IS_ROOT),--allow-run-as-root) --oversubscribe -n 2
 PYTEST  := $(PY) -m pytest
-export OMPI_MCA_rmaps_base_oversubscribe := 1
-export NUMBA_CACHE_DIR := $(CURDIR)/.venv/numba-cache
-
-.PHONY: setup demo test test-serial test-mpi test-all bench lint clean
-setup: $(STAMP)
-
-$(STAMP): pyproject.toml
-	@missing=""; for p in $(DEB_PKGS); do \
+# $(call apt_ensure,PACKAGES): apt-get install those of the Debian PACKAGES that are not installed yet.
+apt_ensure = missing=""; for p in $(1); do \
 	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
 	done; \
 	if [ -n "$$missing" ]; then \
-	  echo "febed setup: installing Debian packages:$$missing"; \
+	  echo "febed: installing Debian packages:$$missing"; \
 	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q $$missing; \
 	fi
+export OMPI_MCA_rmaps_base_oversubscribe := 1
+export NUMBA_CACHE_DIR := $(CURDIR)/.venv/numba-cache
+
+.PHONY: setup demo test test-serial test-mpi test-all bench lint docs clean
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(call apt_ensure,$(DEB_PKGS))
 	[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
 	$(PY) -m pip install -q --no-build-isolation -e '.[dev]'
 	@touch $(STAMP)
@@ -53,5 +55,13 @@ lint: setup
 	$(VENV)/bin/ruff format --check --quiet febed tests benchmarks demos
 	$(PY) tools/check_language.py
 
+# The documentation site (docs/, Sphinx + MyST Markdown from Debian's packages) in docs/_build/html; warnings are
+# errors. The case-file reference and the API pages are generated from febed's code at every build.
+DOC_PKGS := python3-sphinx python3-myst-parser
+docs: setup
+	@$(call apt_ensure,$(DOC_PKGS))
+	$(PY) -m sphinx -b html -W --keep-going -q -E docs docs/_build/html
+	@echo "febed docs: open docs/_build/html/index.html"
+
 clean:
-	rm -rf $(VENV) .venv/numba-cache
+	rm -rf $(VENV) .venv/numba-cache docs/_build
