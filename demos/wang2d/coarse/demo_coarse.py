@@ -7,14 +7,18 @@
 # and TM uses it too so the comparison is fair), then plots what the paper plots: the pressure drop at 45 mm
 # above the distributor, the bed height, the group count, particle snapshots, and a table of run times.
 #
-# Usage: `.venv/bin/python demos/wang2d/coarse/demo_coarse.py [--quick] [--only NAME ...] [--no-run]`.
-# Finished runs in the output folder (`runs/`, or `runs-quick/` with --quick) are reused, never rerun.
-# The runs go one after the other (the reference machine has 2 cores); the `-np2` runs use 2 MPI ranks.
+# Usage: `.venv/bin/python demos/wang2d/coarse/demo_coarse.py [--quick] [--end-time T] [--only NAME ...]
+# [--no-run] [--figures DIR]`. The runs go to `out/runs/` beside this script (`out/quick/` with --quick), the
+# figures and tables to the `figures/` folder inside it; `--figures demos/wang2d/coarse/figures` updates the
+# ones shown by the documentation. Runs already made to the same end time are reused, never rerun. The runs
+# go one after the other (the reference machine has 2 cores); the `-np2` runs use 2 MPI ranks, through an
+# `mpirun` the script starts itself (start the script without mpirun).
 
 import argparse
 import csv
 import json
 import math
+import os
 import re
 import subprocess
 import sys
@@ -52,22 +56,33 @@ RUNS = {
 }
 
 parser = argparse.ArgumentParser()
-parser.add_argument("--quick", action="store_true", help="smoke check: 0.05 s per run, output in runs-quick/")
+parser.add_argument("--quick", action="store_true", help="smoke check: 0.05 s per run, output in out/quick/")
 parser.add_argument("--end-time", type=float, default=None, help="simulated seconds per run (default 1 s)")
-parser.add_argument("--only", nargs="*", default=None, help="run only these names (plots use every finished run)")
+parser.add_argument("--only", nargs="*", default=None, choices=list(RUNS), metavar="NAME",
+                    help=f"run only these ({', '.join(RUNS)}); plots use every finished run")  # fmt: skip
 parser.add_argument("--no-run", action="store_true", help="only plot the finished runs")
+parser.add_argument("--figures", default=None, help="folder for the figures and tables (default: figures/ in the "
+                    "runs folder; demos/wang2d/coarse/figures: those of the documentation)")  # fmt: skip
 args = parser.parse_args()
+if int(os.environ.get("OMPI_COMM_WORLD_SIZE") or os.environ.get("PMI_SIZE") or 1) > 1:
+    sys.exit("demo_coarse.py starts its runs itself (the -np2 ones under mpirun -n 2): start it without mpirun")
 end_time = args.end_time or (0.05 if args.quick else 1.0)
-OUT = HERE / ("runs-quick" if args.quick else "runs")
+OUT = HERE / "out" / ("quick" if args.quick else "runs")
 OUT.mkdir(parents=True, exist_ok=True)
-FIG = OUT / "figures" if args.quick else HERE / "figures"  # the study's figures are committed
+FIG = Path(args.figures) if args.figures else OUT / "figures"
 FIG.mkdir(parents=True, exist_ok=True)
 
 
 def finished(name: str) -> bool:
-    """True if run `name` was attempted: it finished, failed or was stopped (delete OUT/name* to rerun)."""
-    f = OUT / name / "status.json"
-    return (OUT / f"{name}.wall").exists() or (f.exists() and json.loads(f.read_text()).get("state") == "finished")
+    """True if run `name` was attempted to this end time: it finished, failed or was stopped (delete OUT/name*
+    to rerun it; a run made to another end time is rerun)."""
+    try:
+        info = json.loads((OUT / name / "status.json").read_text())
+    except (OSError, ValueError):
+        info = {}
+    if "end_time" in info and not math.isclose(info["end_time"], end_time):
+        return False
+    return (OUT / f"{name}.wall").exists() or info.get("state") == "finished"
 
 
 def run_case(name: str) -> None:
@@ -334,3 +349,17 @@ with open(FIG / "table.md", "w") as f:  # the same, for the README
                 f"{r['dp45_std_over_W']:.3f} | {r['bed_height_mm']:.1f} | {g} | {r['crushed']:.0f} | "
                 f"{r['merged']:.0f} | {r['event_energy_J']:.2g} |\n")  # fmt: skip
 print(f"figures, table.csv and table.md in {FIG}")
+
+# ## Checks
+#
+# Every run reached its end time, and once the 4,080 bed has been fluidized for long enough (runs of at least
+# 1 s, averaged from 0.3 s on) the gas carries its weight: the bed pressure drop is within 5 % of W/A.
+
+fluidized = [r for r in rows if r["run"] in ALL_4080 and r["t_end_s"] >= 1.0]
+problems = [f"{r['run']}: {r['failure']}" for r in rows if r["failure"]]
+problems += [f"{r['run']}: bed pressure drop {r['dp_bed_over_W']:.3f} W/A" for r in fluidized
+             if abs(r["dp_bed_over_W"] - 1) > 0.05]  # fmt: skip
+if problems:
+    sys.exit("checks failed:\n  " + "\n  ".join(problems))
+carried = ", ".join(r["run"] for r in fluidized) or "none of the runs is 1 s long"
+print(f"checks passed: {len(rows)} run(s) reached their end time; bed pressure drop within 5 % of W/A: {carried}")
