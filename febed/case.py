@@ -5,7 +5,7 @@ A case is a TOML file with the sections `[run]`, `[mesh]`, `[gas]`, `[gas.bounda
 `febed/schema.py` are the single source of truth: defaults, units, ranges, choices and help text feed
 the validation here, `febed params`, and the resolved case written to the output folder.
 
-Validation is strict and happens before any computation (STYLE.md item 7):
+Validation is strict and happens before any computation:
 
 * an unknown section or key is an error naming the nearest valid one;
 * a wrong type or an out-of-range value is an error naming the key, the value and what is allowed;
@@ -285,7 +285,10 @@ def _check_table(where: str, table: dict[str, Any], params: dict[str, Param]) ->
 
 
 def _show(v: Any) -> str:
-    return repr(v) if isinstance(v, str) else str(v)
+    text = repr(v) if isinstance(v, str) else str(v)
+    if isinstance(v, int) and not isinstance(v, bool) and len(text) > 30:
+        return f"{text[:6]}... (a {len(text.lstrip('-'))}-digit number)"
+    return text if len(text) <= 200 else f"{text[:60]}... ({len(text)} characters)"
 
 
 def _cross_checks(case: Case, check_files: bool) -> list[str]:
@@ -298,8 +301,11 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
         problems.append("[mesh] needs file = 'path/to/mesh.msh' or builtin = 'pseudo2d' | 'wang2d' | 'cylinder'")
     if check_files and mesh.file:
         f = case.resolve_path(mesh.file)
-        if not f.is_file():
+        if f.is_dir():
+            problems.append(f"[mesh] file = {mesh.file!r}: {f} is a folder; give a gmsh .msh file")
+        elif not f.is_file():
             problems.append(f"[mesh] file = {mesh.file!r}: mesh file not found: {f}")
+    problems += _unused_mesh_keys(mesh)
     parts = case.particles
     if check_files and parts.bed_file:
         f = case.resolve_path(parts.bed_file)
@@ -313,6 +319,14 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
     run = case.run
     if run.mode in ("gas", "cfd-dem") and not case.boundary:
         problems.append(f"[run] mode = {run.mode!r} needs gas boundary conditions: add [gas.boundary.<tag>] tables")
+    types = {b.type for b in case.boundary.values()}
+    if run.mode in ("gas", "cfd-dem") and "inlet" in types and "outlet" not in types:
+        problems.append(
+            "[gas.boundary] an inlet needs an outlet: the gas flowing in has nowhere to go; give the tag it leaves "
+            "by type = 'outlet'"
+        )
+    if case.gas.dt_min > case.gas.dt_max:
+        problems.append(f"[gas] dt_min = {case.gas.dt_min:g} s must not exceed dt_max = {case.gas.dt_max:g} s")
     for tag, b in case.boundary.items():
         if b.type == "inlet" and b.velocity is None:
             problems.append(f"[gas.boundary.{tag}] type = 'inlet' needs velocity (superficial, m/s)")
@@ -345,6 +359,34 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
         problems.append("[output] keep_checkpoints must be at least 1")
     if math.isfinite(run.end_time) and run.end_time <= 0:
         problems.append("[run] end_time must be > 0")
+    return problems
+
+
+def _unused_mesh_keys(mesh: Section) -> list[str]:
+    """`[mesh]` keys given (not at their default) that the chosen mesh would ignore."""
+    default = {k: p.default for k, p in SCHEMA["mesh"].items()}
+    given = [k for k in ("level", "size", "extent", "cell") if getattr(mesh, k) != default[k]]
+    if mesh.file:
+        return [
+            f"[mesh] {k} = {_show(getattr(mesh, k))} applies to built-in meshes, not to [mesh] file = {mesh.file!r}; "
+            "remove it"
+            for k in given
+        ]
+    b, cell = mesh.builtin, mesh.cell
+    structured = b == "wang2d" or (b == "pseudo2d" and cell == "hexahedron")
+    name = f"{b!r} ({cell})" if b == "pseudo2d" else repr(b)
+    problems = []
+    if "size" in given and structured:
+        problems.append(
+            f"[mesh] size = {mesh.size:g}: the built-in mesh {name} is structured, its cells are fixed "
+            "(pseudo2d: by level); size applies to 'box', 'cylinder' and tetrahedral 'pseudo2d'; remove it"
+        )
+    if "level" in given and not (b == "pseudo2d" and cell == "hexahedron"):
+        problems.append(
+            f"[mesh] level = {mesh.level!r} applies to the hexahedral 'pseudo2d' mesh only, not to {name}; remove it"
+        )
+    if "extent" in given and b != "box":
+        problems.append(f"[mesh] extent applies to builtin = 'box' only, not to {b!r}; remove it")
     return problems
 
 

@@ -2,7 +2,7 @@
 
     febed run CASE.toml [--set section.key=value ...] [--overwrite]   run a case (also under mpirun -n N)
     febed run CASE.toml --restart [CHECKPOINT]                        continue a run from its newest checkpoint
-    febed check CASE.toml [--set ...]                                 validate a case and its mesh, run nothing
+    febed check CASE.toml [--set ...]                                 validate a case, its mesh and bed, run nothing
     febed params [SECTION]                                            every parameter: default, unit, help
     febed status RUN_DIR [...]                                        state, progress, newest checkpoint of runs
     febed mesh NAME [--level L] [--cell C] [--size H] [--extent ...] -o FILE.msh   build a built-in mesh
@@ -10,8 +10,10 @@
     febed study STUDY.toml [--list | --jobs FILE]                      run / resume / compare a case family
     febed compare RUN_DIR RUN_DIR ... [--labels ...] [--window T0 T1]  one table + figures of separate runs
 
-Errors in the user's input (case, mesh, output folder, values a solver refuses) are printed as one clear
-message and exit with status 2; a run that fails (a particle escaping, ...) exits with status 3 after
+Errors in the user's input (case, mesh, bed file, checkpoint, output folder, values a solver refuses) are
+printed as one clear message and exit with status 2, before anything runs: `febed run` and `febed check` run
+the pre-flight checks of `febed.preflight` (mesh tags, bed file against the case, the run's cost; `--force`
+runs a case whose estimate is refused as absurd); a run that fails (a particle escaping, ...) exits with status 3 after
 writing its last good state as a checkpoint; a run stopped by SIGINT/SIGTERM/SIGUSR1 writes a checkpoint and
 exits with 128 + the signal number (130, 143, 138); a traceback means a bug in febed (`febed run -v` shows the
 traceback of a refused value too).
@@ -22,7 +24,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-import tempfile
 from pathlib import Path
 
 from mpi4py import MPI
@@ -78,8 +79,13 @@ def _parser() -> argparse.ArgumentParser:
         "checkpoint file, or the newest one in this folder)",
     )
     r.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    c = sub.add_parser("check", help="validate a case (and its mesh tags) without running it")
+    force_help = (
+        "run even if the pre-flight estimate refuses the run as absurd (DEM sub-steps per gas step, wall time, memory)"
+    )
+    r.add_argument("--force", action="store_true", help=force_help)
+    c = sub.add_parser("check", help="validate a case, its mesh tags and bed file, and estimate the run")
     with_case(c)
+    c.add_argument("--force", action="store_true", help=force_help)
     pa = sub.add_parser("params", help="list every case parameter with default, unit and help")
     pa.add_argument("section", nargs="?", help="only this section (e.g. gas, contact, gas.boundary)")
     m = sub.add_parser("mesh", help="build a built-in mesh as a gmsh .msh file")
@@ -125,15 +131,16 @@ def cmd_status(args) -> int:
 
 
 def cmd_check(args) -> int:
-    """Validate the case and load its mesh (tags checked) without writing anything."""
-    case = load_case(args.case, args.overrides)
-    from febed.meshing import global_cell_count, load_case_mesh
+    """Validate the case, its mesh and bed and estimate the run (`febed.preflight`) without writing anything."""
+    from febed.preflight import mesh_name, preflight
 
-    with tempfile.TemporaryDirectory() as tmp:
-        md = load_case_mesh(case, cache_dir=Path(tmp))
+    case = load_case(args.case, args.overrides)
+    pf = preflight(case, force=args.force)
+    for note in pf.notes:
+        _say(f"note: {note}")
     _say(
-        f"{args.case}: OK — mode {case.run.mode}, mesh {md.source and Path(md.source).name} "
-        f"({global_cell_count(md)} cells, tags {', '.join(sorted(md.tags))}), output to {case.output_dir()}"
+        f"{args.case}: OK — mode {case.run.mode}, {mesh_name(case)} ({pf.mesh['cells']} cells, tags "
+        f"{', '.join(pf.tags)}), output to {case.output_dir()}\n{pf.estimate.text()}"
     )
     return 0
 
@@ -156,6 +163,7 @@ def cmd_run(args) -> int:
     released when the run ends, however it ends.
     """
     from febed.io.rundir import get_logger, held_lock, prepare_output, release_output
+    from febed.preflight import preflight
 
     case = load_case(args.case, args.overrides)
     module = RUNNERS[case.run.mode]
@@ -175,16 +183,21 @@ def cmd_run(args) -> int:
             raise UserError(
                 f"--restart is available for [run] mode = {' or '.join(map(repr, RESTARTABLE))}, not {case.run.mode!r}"
             )
+    pf = preflight(case, force=args.force)  # mesh, bed and estimate: refused before the folder is touched
+    case = pf.case  # with the bed's particles if it is authoritative
     held = held_lock(case.output_dir()) is not None  # by this process already (the Python API): kept
     try:
         if args.restart is None:
             outdir, checkpoint = prepare_output(case, overwrite=args.overwrite), None
         else:
-            outdir, checkpoint = _restart_target(case, args.restart)
+            outdir, checkpoint = _restart_target(case, args.restart, pf)
         log = get_logger(outdir, verbose=args.verbose)
         lock = held_lock(outdir)
         if lock is not None and lock.note:
             log.warning(f"note: {lock.note}")
+        for note in pf.notes:
+            log.warning(f"note: {note}")
+        log.info(pf.estimate.text())
         if checkpoint is None:
             log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
             log.info(f"output folder: {outdir}")
@@ -199,11 +212,17 @@ def cmd_run(args) -> int:
     return 0
 
 
-def _restart_target(case, restart: str) -> tuple[Path, Path]:
-    """The run folder and checkpoint to continue; refuses case changes a restart cannot take (collective)."""
-    from febed.io.checkpoint import FOLDER
+def _restart_target(case, restart: str, pf=None) -> tuple[Path, Path]:
+    """The run folder and checkpoint file to continue (collective).
+
+    Refuses, before anything is written, a checkpoint that does not read, is of another mode, is past the
+    end time or belongs to another run (`febed.restart.checkpoint_differences` against the case, its mesh and
+    particles from the pre-flight `pf`), and case changes a restart cannot take. Only then is an accepted
+    change written to the resolved case.
+    """
+    from febed.io.checkpoint import FOLDER, checkpoint_identity
     from febed.io.rundir import RESOLVED_CASE, _header, atomic_write_text, lock_output, running_process
-    from febed.restart import case_changes, read_resolved
+    from febed.restart import case_changes, check_restartable, checkpoint_differences, read_resolved
 
     outdir = case.output_dir()
     if not (outdir / RESOLVED_CASE).is_file():
@@ -224,6 +243,20 @@ def _restart_target(case, restart: str) -> tuple[Path, Path]:
             "--restart: the case changed in parameters a run cannot change midway:\n  "
             + "\n  ".join(refused)
             + "\nstart a new run (another output directory) to change them"
+        )
+    checkpoint, meta, ident, skipped = checkpoint_identity(checkpoint)
+    for why in skipped:
+        _say(f"febed: note: skipped a newer checkpoint that does not read: {why}", err=True)
+    check_restartable(meta, case)
+    mesh, particles = (pf.mesh, pf.estimate.particles) if pf is not None else (None, None)
+    if case.run.mode == "gas":
+        particles = None
+    differences = checkpoint_differences(ident, meta, case, mesh, particles)
+    if differences:
+        raise UserError(
+            f"--restart: the checkpoint {checkpoint} belongs to another run than this case's:\n  "
+            + "\n  ".join(differences)
+            + "\n(checkpoint -> case); continue a checkpoint with the case it was written by"
         )
     if accepted and MPI.COMM_WORLD.rank == 0:
         _say("febed: restart with changed parameters:\n  " + "\n  ".join(accepted))
@@ -273,6 +306,9 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except CheckpointError as e:
         _say(f"febed: error: {e}", err=True)
+    except MemoryError:
+        _say("febed: the run failed: out of memory (`febed check` estimates what a case needs)", err=True)
+        return 3
     except ValueError as e:  # a value the solvers refuse, with their message (-v shows the traceback)
         if getattr(args, "verbose", False):
             raise

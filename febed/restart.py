@@ -22,6 +22,12 @@ lists are rebuilt, so results agree to round-off rather than bit for bit.
 A restart may change how the run is driven and written (`CHANGEABLE`: end time, output intervals, gas
 time-step bounds, solver options, failure limits) but not the physics or the geometry: any other changed
 key is refused with the list of differences.
+
+Every checkpoint records what it belongs to (`febed.io.checkpoint.identity`): a digest of the physics keys
+of its case (every key but the `CHANGEABLE` ones, `physics_digest`), its mesh (node count and bounding box,
+from the gas nodes) and its particles (how many it holds and how many have left the domain). `febed run
+--restart CHECKPOINT` compares them with the case and its mesh (`checkpoint_differences`) and refuses
+another run's checkpoint with the list of differences, before anything is written.
 """
 
 from __future__ import annotations
@@ -36,42 +42,14 @@ from mpi4py import MPI
 import numpy as np
 
 from febed.io.checkpoint import CheckpointError, gather_rows, match_nodes
+from febed.schema import CHANGEABLE, flatten_keys, physics_digest
 
-CHANGEABLE = (
-    "run.end_time",
-    "run.max_overlap",
-    "run.max_clipped_fraction",
-    "output.*",
-    "gas.cfl",
-    "gas.fourier",
-    "gas.dt_min",
-    "gas.dt_max",
-    "gas.drag_number",
-    "gas.pressure_passes",
-    "gas.drag_weighted_projection",
-    "contact.skin",
-    "gas.petsc_options",
-    "gas.pressure_rtol",
-    "gas.mass_tolerance",
-    "gas.backflow",
-)
 RESTARTABLE = ("cfd-dem", "dem", "gas")  # [run] modes whose runs write checkpoints and continue from them
 _ROWS = "p_"  # DEM state keys holding one row per particle
 _HISTORY = ("saved_keys", "saved_vals", "saved_wkeys", "saved_wvals")
 
 
 # ------------------------------------------------------------------------------------------ case changes
-def _flatten(d: dict, prefix: str = "") -> dict[str, object]:
-    out = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flatten(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
 def _is_default(key: str, value) -> bool:
     """Whether `value` is the schema default of the case key `section.name` or `gas.boundary.<tag>.name`."""
     from febed.schema import BOUNDARY, SCHEMA
@@ -87,7 +65,7 @@ def _is_default(key: str, value) -> bool:
 
 def case_changes(old_toml: str, new_toml: str) -> tuple[list[str], list[str]]:
     """Changed keys between two resolved cases, split into (accepted, refused) lines `key: old -> new`."""
-    old, new = _flatten(tomllib.loads(old_toml)), _flatten(tomllib.loads(new_toml))
+    old, new = flatten_keys(tomllib.loads(old_toml)), flatten_keys(tomllib.loads(new_toml))
     accepted, refused = [], []
     for key in sorted(set(old) | set(new)):
         a, b = old.get(key, "(unset)"), new.get(key, "(unset)")
@@ -98,6 +76,45 @@ def case_changes(old_toml: str, new_toml: str) -> tuple[list[str], list[str]]:
         line = f"{key}: {a!r} -> {b!r}"
         (accepted if any(fnmatch(key, pat) for pat in CHANGEABLE) else refused).append(line)
     return accepted, refused
+
+
+def checkpoint_differences(ident: dict, meta: dict, case, mesh: dict | None, particles: int | None) -> list[str]:
+    """What makes a checkpoint another run's than `case`'s: lines `what: checkpoint -> case` (empty: the same run).
+
+    Args:
+        ident: the checkpoint's identity (`febed.io.checkpoint.identity`).
+        meta: its meta record (its `case`, when recorded, lists the changed physics keys one by one).
+        case: the case to continue.
+        mesh: `febed.preflight.mesh_identity` of the case's mesh (None: not compared).
+        particles: the particles the case starts with (None: not compared).
+    """
+    lines: list[str] = []
+    toml = case.to_toml()
+    if meta.get("case"):
+        lines += case_changes(meta["case"], toml)[1]
+    elif ident.get("physics") and ident["physics"] != physics_digest(toml):
+        lines.append("physics keys: the checkpoint's digest differs from the case's (it records no case to list them)")
+    m = ident.get("mesh")
+    if m and mesh:
+        if m["nodes"] != mesh["nodes"]:
+            lines.append(f"mesh nodes: {m['nodes']} -> {mesh['nodes']}")
+        lo, hi = np.array(m["bounds"][:3]), np.array(m["bounds"][3:])
+        tol = 1e-9 * max(float(np.max(hi - lo)), 1e-300)
+        if np.max(np.abs(np.array(m["bounds"]) - np.array(mesh["bounds"]))) > tol:
+            lines.append(f"mesh bounds: {_box(m['bounds'])} -> {_box(mesh['bounds'])}")
+    n = ident.get("particles")
+    if n is not None and particles is not None and case.coarse_grain.model != "pcpm":  # pcpm groups crush and merge
+        left = ident.get("left")
+        if left is not None and n + left != particles:
+            was = f"{n + left} ({n} in the checkpoint, {left} left the domain)"
+            lines.append(f"particles at the start: {was} -> {particles}")
+        elif left is None and n > particles:
+            lines.append(f"particles: {n} in the checkpoint -> {particles} in the case")
+    return lines
+
+
+def _box(b) -> str:
+    return f"[{', '.join(f'{v:.6g}' for v in b[:3])}] to [{', '.join(f'{v:.6g}' for v in b[3:])}] m"
 
 
 # ------------------------------------------------------------------------------------------ the state
@@ -241,7 +258,7 @@ def _portable(dem: dict) -> dict:
 
 def check_restartable(meta: dict, case) -> None:
     """Raise CheckpointError if the checkpoint cannot continue this case (e.g. it is already past its end)."""
-    mode = meta.get("mode", "cfd-dem")  # coupled checkpoints before session 9 carry no mode
+    mode = meta.get("mode", "cfd-dem")  # older coupled checkpoints carry no mode
     if mode != case.run.mode:
         raise CheckpointError(
             f"the checkpoint is of a [run] mode = {mode!r} run, the case is {case.run.mode!r}: a run continues "

@@ -1,6 +1,6 @@
 """Declarations of every case parameter: default, unit, allowed range or choices, help text.
 
-This is the one place a parameter is declared (STYLE.md item 7). `febed/case.py` validates against it,
+This is the one place a parameter is declared. `febed/case.py` validates against it,
 `febed params` prints it, and the resolved case written into each output folder is generated from it.
 To add a parameter, add one `Param(...)` line to its section below and read it as `case.<section>.<key>`.
 
@@ -10,8 +10,12 @@ the closures its module registered, so adding a law needs no edit here.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import tomllib
 from dataclasses import dataclass
+from fnmatch import fnmatch
 from typing import Any
 
 from febed.registry import Registry
@@ -36,6 +40,7 @@ class Param:
         lo, hi: inclusive bounds for numbers (list entries too); `lo_open` makes the lower bound strict.
         choices: allowed values for strings (or the items of a list of strings): a tuple or a Registry.
         length: required length of a list (None: any length >= 1).
+        finite: numbers (and list entries) must be finite; inf and nan are refused unless False.
     """
 
     default: Any
@@ -48,6 +53,7 @@ class Param:
     choices: tuple[str, ...] | Registry | None = None
     length: int | None = None
     item: type = float
+    finite: bool = True
 
     def allowed(self) -> str:
         """Human-readable description of the allowed values."""
@@ -72,7 +78,7 @@ class Param:
         return list(self.choices or ())
 
     def _in_range(self, x: float) -> bool:
-        if isinstance(x, float) and math.isnan(x):
+        if isinstance(x, float) and (math.isnan(x) or (self.finite and math.isinf(x))):
             return False
         if self.lo is not None and (x < self.lo or (self.lo_open and x == self.lo)):
             return False
@@ -82,15 +88,21 @@ class Param:
         """Return (converted value, None) or (None, message saying what is allowed)."""
         t = self.type
         bad = (None, f"expected {self.allowed()}")
+        if _non_finite(value) and self.finite:
+            bad = (None, f"expected {self.allowed()} (inf and nan are not allowed here)")
         if t is bool:
             return (value, None) if isinstance(value, bool) else bad
         if t is int:
             if isinstance(value, bool) or not isinstance(value, int):
                 return bad
+            if abs(value) > _INT_MAX:
+                return None, f"expected {self.allowed()} (at most {_INT_MAX}: a 64-bit integer)"
             return (value, None) if self._in_range(value) else bad
         if t is float:
             if isinstance(value, bool) or not isinstance(value, int | float):
                 return bad
+            if isinstance(value, int) and abs(value) > _FLOAT_INT_MAX:
+                return None, f"expected {self.allowed()} (a number this large overflows a 64-bit float)"
             value = float(value)
             return (value, None) if self._in_range(value) else bad
         if t is str:
@@ -110,9 +122,21 @@ class Param:
                 return (value, None) if ok else bad
             if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
                 return bad
+            if any(isinstance(x, int) and abs(x) > _FLOAT_INT_MAX for x in value):
+                return None, f"expected {self.allowed()} (a number this large overflows a 64-bit float)"
             value = [float(x) for x in value]
             return (value, None) if all(self._in_range(x) for x in value) else bad
         raise TypeError(f"unsupported parameter type {t}")
+
+
+_INT_MAX = 2**63 - 1  # integers are stored as int64
+_FLOAT_INT_MAX = 10**308  # integers beyond this do not convert to a float
+
+
+def _non_finite(value: Any) -> bool:
+    """Whether value is (or, for a list, holds) an infinite or nan float."""
+    items = value if isinstance(value, list) else [value]
+    return any(isinstance(x, float) and not math.isfinite(x) for x in items)
 
 
 INF = math.inf
@@ -259,8 +283,23 @@ SCHEMA: dict[str, dict[str, Param]] = {
             "insertion box [xmin, ymin, zmin, xmax, ymax, zmax]; infinite bounds are clipped to the mesh",
             list,
             length=6,
+            finite=False,
         ),
-        "bed_file": Param("", "-", "packed bed (.npz) to load instead of inserting (relative to the case file)", str),
+        "bed_file": Param(
+            "",
+            "-",
+            "packed bed (.npz) to load instead of inserting (relative to the case file); its particles must "
+            "match count (or bed_mass, if given), diameter and density to a relative 1e-6 (of the parcels the "
+            "case's [coarse_grain] would insert), or set bed_authoritative",
+            str,
+        ),
+        "bed_authoritative": Param(
+            False,
+            "-",
+            "an existing bed_file decides the particles: count, diameter and density are taken from it (logged, and "
+            "written so to the resolved case) instead of having to match; false: a mismatch is an error",
+            bool,
+        ),
         "pack_if_missing": Param(
             True, "-", "if bed_file does not exist, insert and settle a bed and save it there", bool
         ),
@@ -413,17 +452,30 @@ SCHEMA: dict[str, dict[str, Param]] = {
     },
     "output": {
         "directory": Param("", "-", "output folder; default ./runs/<case name>", str),
-        "field_interval": Param(0.05, "s", "simulated time between field (XDMF) outputs", float, lo=0.0, lo_open=True),
-        "particle_interval": Param(0.05, "s", "simulated time between particle outputs", float, lo=0.0, lo_open=True),
-        "probe_interval": Param(1e-3, "s", "simulated time between probe rows", float, lo=0.0, lo_open=True),
-        "checkpoint_interval": Param(INF, "s", "simulated time between checkpoints", float, lo=0.0, lo_open=True),
-        "checkpoint_wall_interval": Param(
-            3600.0,
+        "field_interval": Param(
+            0.05,
             "s",
-            "wall-clock time between checkpoints (either interval triggers one)",
+            "simulated time between field (XDMF) outputs; inf: none",
             float,
             lo=0.0,
             lo_open=True,
+            finite=False,
+        ),
+        "particle_interval": Param(
+            0.05, "s", "simulated time between particle outputs; inf: none", float, lo=0.0, lo_open=True, finite=False
+        ),
+        "probe_interval": Param(1e-3, "s", "simulated time between probe rows", float, lo=0.0, lo_open=True),
+        "checkpoint_interval": Param(
+            INF, "s", "simulated time between checkpoints; inf: none", float, lo=0.0, lo_open=True, finite=False
+        ),
+        "checkpoint_wall_interval": Param(
+            3600.0,
+            "s",
+            "wall-clock time between checkpoints (either interval triggers one); inf: none",
+            float,
+            lo=0.0,
+            lo_open=True,
+            finite=False,
         ),
         "probe_heights": Param(
             [], "m", "heights (along gravity) where the cross-section averaged pressure is probed", list
@@ -510,3 +562,54 @@ def describe(section: str, key: str, par: Param) -> str:
     default = "(unset)" if par.default is None else par.default
     unit = f" [{par.unit}]" if par.unit not in ("", "-") else ""
     return f"{section}.{key} = {default!r}{unit}  -- {par.help}; {par.allowed()}"
+
+
+# ------------------------------------------------------------------------------ restarts and identity
+# The keys a restart may change: how a run is driven and written, not its physics or geometry
+# (`febed.restart.case_changes`); every other key is part of what a checkpoint belongs to.
+CHANGEABLE = (
+    "run.end_time",
+    "run.max_overlap",
+    "run.max_clipped_fraction",
+    "output.*",
+    "gas.cfl",
+    "gas.fourier",
+    "gas.dt_min",
+    "gas.dt_max",
+    "gas.drag_number",
+    "gas.pressure_passes",
+    "gas.drag_weighted_projection",
+    "contact.skin",
+    "gas.petsc_options",
+    "gas.pressure_rtol",
+    "gas.mass_tolerance",
+    "gas.backflow",
+)
+
+
+def flatten_keys(d: dict, prefix: str = "") -> dict[str, object]:
+    """A nested case table as {"section.key": value} (sub-tables joined with dots)."""
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten_keys(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def physics_keys(case_toml: str) -> dict[str, object]:
+    """The keys of a resolved case that a restart cannot change (every key but `CHANGEABLE` and the names)."""
+    flat = flatten_keys(tomllib.loads(case_toml))
+    return {
+        k: v
+        for k, v in sorted(flat.items())
+        if k not in ("output.directory", "run.name", "extends") and not any(fnmatch(k, pat) for pat in CHANGEABLE)
+    }
+
+
+def physics_digest(case_toml: str) -> str:
+    """A SHA-256 digest of `physics_keys` (hex)."""
+    text = json.dumps(physics_keys(case_toml), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()

@@ -98,9 +98,9 @@ def test_restart_refuses_changed_physics_and_reports_changes(straight, tmp_path,
     out = tmp_path / "run"
     assert febed(out, 0.01) == 0
     capsys.readouterr()
-    assert febed(out, 0.02, "--restart", "--set", "particles.density=2000") == 2
+    assert febed(out, 0.02, "--restart", "--set", "contact.friction_pp=0.5") == 2
     err = capsys.readouterr().err
-    assert "particles.density: 1150.0 -> 2000.0" in err and "cannot change midway" in err
+    assert "contact.friction_pp: 0.3 -> 0.5" in err and "cannot change midway" in err
     assert febed(out, 0.02, "--restart", "--set", "gas.cfl=0.1") == 0
     assert "gas.cfl: 0.2 -> 0.1" in capsys.readouterr().out
     assert febed(out, 0.02, "--restart") == 2  # already at its end time: nothing to do, said clearly

@@ -184,12 +184,88 @@ def save_bed(path, particles: Particles, **meta) -> Path:
     return path
 
 
+class BedError(ValueError):
+    """A packed-bed file that cannot be used; the message names the file and what is wrong."""
+
+
+_BED_REQUIRED = ("pos", "diameter", "mass")
+_BED_VECTORS = ("pos", "vel", "omega", "force", "torque")
+_BED_FORMAT = (
+    "a bed file is a .npz archive as `save_bed` writes it: per-particle arrays pos (n, 3) m, diameter (n,) m and "
+    "mass (n,) kg, optionally vel, omega (n, 3), inertia, gid, n_orig (n,)"
+)
+
+
 def load_bed(path) -> tuple[Particles, dict]:
-    """Particles and metadata saved by `save_bed`."""
+    """Particles and metadata saved by `save_bed`; BedError naming the file if it is not a usable bed.
+
+    Checks that the file is a readable .npz archive, that it holds pos, diameter and mass of at least one
+    particle with matching lengths, that every value is finite, diameters and masses > 0, n_orig >= 1 and
+    gids unique. A missing inertia is that of a solid sphere, 0.1 m d^2.
+    """
     path = Path(path)
     if not path.exists():
-        raise ValueError(f"bed file {path} does not exist")
-    with np.load(path) as z:
-        data = {k: z[k] for k in z.files}
+        raise BedError(f"bed file {path} does not exist")
+    if path.is_dir():
+        raise BedError(f"bed file {path} is a folder; [particles] bed_file names a .npz file ({_BED_FORMAT})")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError as e:
+        raise BedError(f"bed file {path} cannot be read: {e.strerror or e}") from None
+    if head[:2] != b"PK":
+        what = "is not a .npz archive (it is not a zip file)"
+        if not head:
+            what = "is empty"
+        elif head == b"\x93NUM":
+            what = "holds a single array (.npy), not a .npz archive"
+        raise BedError(f"bed file {path} {what}; {_BED_FORMAT}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: np.asarray(z[k]) for k in z.files}
+    except Exception as e:  # BadZipFile, OSError, EOFError, ValueError (pickled or garbage data), zlib errors
+        why = f"{type(e).__name__}: {e}"
+        raise BedError(f"bed file {path} is not a readable .npz archive ({why}); {_BED_FORMAT}") from None
     meta = {k[5:]: data.pop(k) for k in list(data) if k.startswith("meta_")}
+    _check_bed_arrays(path, data)
+    if "inertia" not in data:
+        data["inertia"] = 0.1 * data["mass"] * data["diameter"] ** 2
     return Particles.from_dict(data), meta
+
+
+def _check_bed_arrays(path: Path, data: dict[str, np.ndarray]) -> None:
+    missing = [k for k in _BED_REQUIRED if k not in data]
+    if missing:
+        raise BedError(
+            f"bed file {path} lacks the array(s) {', '.join(missing)} (it has: {', '.join(sorted(data)) or 'none'}); "
+            f"{_BED_FORMAT}"
+        )
+    pos = data["pos"]
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise BedError(f"bed file {path}: pos has shape {pos.shape}, expected (n, 3) (z = 0 for a 2D bed)")
+    n = pos.shape[0]
+    if n == 0:
+        raise BedError(f"bed file {path} holds no particles")
+    for k, v in data.items():
+        want = (n, 3) if k in _BED_VECTORS else (n,)
+        if k in ("pos", "vel", "omega", "force", "torque", "diameter", "mass", "inertia", "gid", "n_orig",
+                 "cell", "material"):  # fmt: skip
+            if v.shape != want:
+                raise BedError(f"bed file {path}: {k} has shape {v.shape}, expected {want} ({n} particles in pos)")
+            if not np.issubdtype(v.dtype, np.number):
+                raise BedError(f"bed file {path}: {k} holds {v.dtype} values, expected numbers")
+            if not np.all(np.isfinite(v)):
+                bad = int(np.count_nonzero(~np.isfinite(v).reshape(n, -1).all(axis=1)))
+                raise BedError(f"bed file {path}: {k} is not finite (inf or nan) for {bad} of {n} particles")
+    for k in ("diameter", "mass"):
+        if np.any(data[k] <= 0):
+            raise BedError(f"bed file {path}: {k} must be > 0; {int(np.count_nonzero(data[k] <= 0))} particle(s) have "
+                           f"{data[k].min():g}")  # fmt: skip
+    if "n_orig" in data and np.any(data["n_orig"] < 1):
+        raise BedError(f"bed file {path}: n_orig must be >= 1 (the original particles each one stands for)")
+    if "gid" in data:
+        gid = data["gid"]
+        from febed.dem.particles import GID_LIMIT
+
+        if np.any(gid < 0) or np.any(gid >= GID_LIMIT) or np.unique(gid).size != n:
+            raise BedError(f"bed file {path}: gid must be unique integers in [0, {GID_LIMIT})")

@@ -141,8 +141,8 @@ class PressureSolver:
             and has_dirichlet
             and ops is None
             and imap.size_global <= DIRECT_MAX_NODES
-            and not (user_pc or _user_set(opts, prefix + "ksp_type"))
-        )
+            and not any(_user_set(opts, name) for name in opts.getAll() if name.startswith(prefix))
+        )  # any option of the user's for this solver (a type, a tolerance, ...) asks for the iterative one
         if not direct:
             defaults = DEFAULT_OPTIONS if comm.size == 1 else {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS}
             _write_defaults(opts, prefix, defaults)

@@ -10,6 +10,10 @@ removed after the new one is in place.
 
 Arrays are gathered to rank 0 in a layout that does not depend on the rank count (particles by global id,
 nodal fields with their coordinates), so a run can restart on another number of ranks.
+
+The meta record also says what the checkpoint belongs to (`identity`, written by `write_checkpoint`): a
+digest of its case's physics keys, its mesh (node count and bounding box of the gas nodes) and its particles
+(held and left the domain); `febed.restart.checkpoint_differences` compares it with a case to continue.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ from pathlib import Path
 from mpi4py import MPI
 
 import numpy as np
+
+from febed.schema import physics_digest
 
 FORMAT = "febed-checkpoint-1"
 FOLDER = "checkpoints"
@@ -51,7 +57,7 @@ def write_checkpoint(folder: Path, arrays: dict[str, np.ndarray], meta: dict, ke
     if comm.rank == 0:
         try:
             folder.mkdir(parents=True, exist_ok=True)
-            _atomic_npz(path, arrays, {**meta, "format": FORMAT})
+            _atomic_npz(path, arrays, {**meta, "identity": identity(arrays, meta), "format": FORMAT})
             for old in list_checkpoints(folder)[:-keep]:
                 old.unlink(missing_ok=True)
         except OSError as e:
@@ -79,6 +85,25 @@ def _atomic_npz(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def identity(arrays: dict[str, np.ndarray], meta: dict) -> dict:
+    """What a checkpoint belongs to: physics digest of its case, its mesh and its particles (None: not known).
+
+    `mesh` is the node count and bounding box [xmin, ymin, zmin, xmax, ymax, zmax] of the gas nodes (runs
+    with gas); `particles` the particles held and `left` those removed from the domain so far (runs with
+    particles).
+    """
+    out: dict = {"physics": physics_digest(meta["case"]) if meta.get("case") else None, "mesh": None}
+    x = arrays.get("gas/x")
+    if x is not None and len(x):
+        x = np.asarray(x)
+        out["mesh"] = {"nodes": int(x.shape[0]), "bounds": [float(v) for v in (*x.min(axis=0), *x.max(axis=0))]}
+    if "dem/p_gid" in arrays:
+        out["particles"] = int(np.asarray(arrays["dem/p_gid"]).shape[0])
+        left = (meta.get("solver") or {}).get("left_outlet", (meta.get("run") or {}).get("left"))
+        out["left"] = int(left) if left is not None else None
+    return out
 
 
 def list_checkpoints(folder: Path) -> list[Path]:
@@ -115,12 +140,14 @@ def read_meta(path: Path) -> dict:
     return meta
 
 
-def latest_valid(folder: Path) -> Path | None:
-    """The newest checkpoint in `folder` that reads completely, or None."""
+def latest_valid(folder: Path, skipped: list[str] | None = None) -> Path | None:
+    """The newest checkpoint in `folder` that reads completely, or None; `skipped` gets why newer ones did not."""
     for path in reversed(list_checkpoints(folder)):
         try:
             read_checkpoint(path)
-        except CheckpointError:
+        except CheckpointError as e:
+            if skipped is not None:
+                skipped.append(str(e))
             continue
         return path
     return None
@@ -135,18 +162,52 @@ def load_checkpoint(where: Path, comm=MPI.COMM_WORLD) -> tuple[Path, dict[str, n
     where = Path(where)
     result = None
     if comm.rank == 0:
-        if where.is_dir() and not list_checkpoints(where) and (where / FOLDER).is_dir():
-            where = where / FOLDER  # a run folder
-        path = latest_valid(where) if where.is_dir() else where
-        if path is None:
-            found = len(list_checkpoints(where))
-            why = f"{found} checkpoint file(s), none readable" if found else "no checkpoint_<step>.npz files"
-            result = CheckpointError(f"no valid checkpoint in {where} ({why})")
-        else:
-            try:
-                result = (path, *read_checkpoint(path))
-            except CheckpointError as e:
-                result = e
+        try:
+            path = resolve_checkpoint(where)
+            result = (path, *read_checkpoint(path))
+        except CheckpointError as e:
+            result = e
+    result = comm.bcast(result, root=0)
+    if isinstance(result, CheckpointError):
+        raise result
+    return result
+
+
+def resolve_checkpoint(where: Path, skipped: list[str] | None = None) -> Path:
+    """The checkpoint file `where` names: itself, or of a checkpoint or run folder its newest readable one.
+
+    Raises CheckpointError if a folder holds none (this process only: rank 0 in a parallel run); `skipped`
+    gets a message for each newer checkpoint that does not read.
+    """
+    where = Path(where)
+    if where.is_dir() and not list_checkpoints(where) and (where / FOLDER).is_dir():
+        where = where / FOLDER  # a run folder
+    if not where.is_dir():
+        return where
+    path = latest_valid(where, skipped)
+    if path is None:
+        found = len(list_checkpoints(where))
+        why = f"{found} checkpoint file(s), none readable" if found else "no checkpoint_<step>.npz files"
+        raise CheckpointError(f"no valid checkpoint in {where} ({why})")
+    return path
+
+
+def checkpoint_identity(where: Path, comm=MPI.COMM_WORLD) -> tuple[Path, dict, dict, list[str]]:
+    """Path, meta and `identity` of the checkpoint `where` names (see `load_checkpoint`), on every rank.
+
+    Reads the whole file on rank 0 (a checkpoint whose arrays do not read is refused here, not mid-restart) and
+    broadcasts only its meta record; a checkpoint written before identities were recorded gets one from its
+    arrays. The fourth item says why newer checkpoints of a folder were skipped (each names its file).
+    """
+    result = None
+    if comm.rank == 0:
+        try:
+            skipped: list[str] = []
+            path = resolve_checkpoint(Path(where), skipped)
+            arrays, meta = read_checkpoint(path)
+            result = (path, meta, meta.get("identity") or identity(arrays, meta), skipped)
+        except CheckpointError as e:
+            result = e
     result = comm.bcast(result, root=0)
     if isinstance(result, CheckpointError):
         raise result

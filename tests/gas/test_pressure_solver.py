@@ -70,6 +70,18 @@ def test_user_options_keep_the_iterative_solver():
         opts.delValue("febed_test_user_pc_type")
 
 
+def test_a_user_tolerance_keeps_the_iterative_solver():
+    Q, dofs = _space(6)
+    opts = PETSc.Options()
+    opts["febed_test_tol_ksp_max_it"] = 50
+    try:
+        s = PressureSolver(Q, dofs, True, "febed_test_tol_")
+        assert s.ksp.getType() == PETSc.KSP.Type.CG
+        s.destroy()
+    finally:
+        opts.delValue("febed_test_tol_ksp_max_it")
+
+
 def test_closed_domain_keeps_the_iterative_solver():
     """Without a pressure node L is singular (constant null space): no factorisation."""
     Q, _ = _space(6)
