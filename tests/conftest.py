@@ -31,13 +31,18 @@ def _collective_teardown():
     handlers and no propagation), so each test sees log records through pytest's caplog again.
     """
     yield
+    reset_febed_logger()
+    gc.collect()
+    MPI.COMM_WORLD.barrier()
+
+
+def reset_febed_logger():
+    """Give the `febed` logger back to pytest: no handlers of its own, records propagated to caplog."""
     log = logging.getLogger("febed")
     for h in list(log.handlers):
         log.removeHandler(h)
         h.close()
     log.propagate = True
-    gc.collect()
-    MPI.COMM_WORLD.barrier()
 
 
 @pytest.fixture(scope="session")

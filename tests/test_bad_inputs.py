@@ -8,7 +8,6 @@ every parameter. Further tests cover what the table cannot: `--force`, a bed dec
 `febed run` leaving no trace, and restarts from another run's checkpoint.
 """
 
-import logging
 import math
 import shutil
 import tomllib
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import reset_febed_logger
 
 from febed.case import CaseError, load_case
 from febed.cli import main
@@ -385,11 +385,7 @@ def _collective_teardown():
     """Replaces conftest's: these serial checks hold no PETSc objects, and a full garbage collection after each
     of several hundred cases would take most of their run time; the `febed` logger is reset as there."""
     yield
-    log = logging.getLogger("febed")
-    for h in list(log.handlers):
-        log.removeHandler(h)
-        h.close()
-    log.propagate = True
+    reset_febed_logger()
 
 
 @pytest.fixture

@@ -159,18 +159,12 @@ def load_checkpoint(where: Path, comm=MPI.COMM_WORLD) -> tuple[Path, dict[str, n
     `where` is a checkpoint file, a folder of checkpoints or a run folder (its `checkpoints/` folder): of a
     folder, the newest checkpoint that reads completely.
     """
-    where = Path(where)
-    result = None
-    if comm.rank == 0:
-        try:
-            path = resolve_checkpoint(where)
-            result = (path, *read_checkpoint(path))
-        except CheckpointError as e:
-            result = e
-    result = comm.bcast(result, root=0)
-    if isinstance(result, CheckpointError):
-        raise result
-    return result
+
+    def read():
+        path = resolve_checkpoint(Path(where))
+        return (path, *read_checkpoint(path))
+
+    return _on_rank0(read, comm)
 
 
 def resolve_checkpoint(where: Path, skipped: list[str] | None = None) -> Path:
@@ -199,13 +193,22 @@ def checkpoint_identity(where: Path, comm=MPI.COMM_WORLD) -> tuple[Path, dict, d
     broadcasts only its meta record; a checkpoint written before identities were recorded gets one from its
     arrays. The fourth item says why newer checkpoints of a folder were skipped (each names its file).
     """
+
+    def read():
+        skipped: list[str] = []
+        path = resolve_checkpoint(Path(where), skipped)
+        arrays, meta = read_checkpoint(path)
+        return path, meta, meta.get("identity") or identity(arrays, meta), skipped
+
+    return _on_rank0(read, comm)
+
+
+def _on_rank0(read, comm):
+    """`read()` on rank 0 and its result on every rank; a CheckpointError it raises is raised on every rank."""
     result = None
     if comm.rank == 0:
         try:
-            skipped: list[str] = []
-            path = resolve_checkpoint(Path(where), skipped)
-            arrays, meta = read_checkpoint(path)
-            result = (path, meta, meta.get("identity") or identity(arrays, meta), skipped)
+            result = read()
         except CheckpointError as e:
             result = e
     result = comm.bcast(result, root=0)
