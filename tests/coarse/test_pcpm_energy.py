@@ -100,7 +100,7 @@ def test_crush_never_gains_energy(spin):
 
 
 def test_pcpm_seed000_bed_event_energy_below_one_percent(tmp_path):
-    """Event energy below 1 % of the mean kinetic energy over 0.1 s of `pcpm2.toml` (ramp, first rise of the bed)."""
+    """Event energy injected below 1 % of the mean kinetic energy over 0.1 s of `pcpm2.toml` (ramp, first rise)."""
     from pathlib import Path
 
     from febed.case import load_case
@@ -117,4 +117,6 @@ def test_pcpm_seed000_bed_event_energy_below_one_percent(tmp_path):
     tot = s.groups.total
     assert tot.merged > 0  # events happened
     assert tot.originals == 8160
-    assert abs(tot.energy_injected) < 0.01 * float(np.mean(ke))
+    # events may dissipate (a merge is a perfectly plastic collision) but inject < 1 % of the bed's kinetic energy
+    assert tot.energy_injected < 0.01 * float(np.mean(ke))
+    assert tot.energy_injected <= 1e-12  # and here, with the energy check on every event, they inject none

@@ -40,8 +40,9 @@ FEBED = Path(sys.executable).parent / "febed"
 # name: (case file, MPI ranks, label). TM l = 1 is plain DEM (n_orig = 1) with the linear law; PCPM l = 1
 # starts from the plain particles, which may merge (up to `max_group` = 27 originals); PCPM l = 2 starts from
 # groups of 8, once serial and once on 2 MPI ranks (`pcpm2-np2`); PCPM l = 3 from groups of 27 (merging up to
-# 64). The 9,600-particle case at 1.9 m/s runs plain DEM with the Gidaspow blend and with seed 000's EMMS
-# drag, and PCPM from l = 1. No run uses the gas LES: every case has the plain gas model of `../wang2d.toml`.
+# 64). Every case has seed 000's EMMS drag (`study.toml`); the 9,600-particle case at 1.9 m/s runs plain DEM
+# with it and, as the contrast, with the Gidaspow blend (`dem9600`), and PCPM from l = 1. No run uses the gas
+# LES: every case has the plain gas model of `../wang2d.toml`.
 RUNS = {
     "tm1": ("tm1.toml", 1, "TM l = 1 (DEM)"),
     "pcpm1": ("pcpm1.toml", 1, "PCPM from l = 1"),
@@ -50,8 +51,8 @@ RUNS = {
     "pcpm2-np2": ("pcpm2.toml", 2, "PCPM from l = 2, 2 ranks"),
     "tm3": ("tm3.toml", 1, "TM l = 3"),
     "pcpm3": ("pcpm3.toml", 1, "PCPM from l = 3"),
-    "dem9600": ("dem9600.toml", 1, "9,600 at 1.9 m/s, DEM"),
-    "dem9600-emms": ("dem9600-emms.toml", 1, "9,600 at 1.9 m/s, DEM, EMMS drag"),
+    "dem9600": ("dem9600.toml", 1, "9,600 at 1.9 m/s, DEM, Gidaspow blend"),
+    "dem9600-emms": ("dem9600-emms.toml", 1, "9,600 at 1.9 m/s, DEM"),
     "pcpm9600": ("pcpm9600.toml", 1, "9,600 at 1.9 m/s, PCPM from l = 1"),
 }
 
@@ -352,14 +353,16 @@ print(f"figures, table.csv and table.md in {FIG}")
 
 # ## Checks
 #
-# Every run reached its end time, and once the 4,080 bed has been fluidized for long enough (runs of at least
-# 1 s, averaged from 0.3 s on) the gas carries its weight: the bed pressure drop is within 5 % of W/A.
+# Every run reached its end time, and in runs of the 4,080 bed of at least 1 s (averaged from 0.3 s on) the
+# momentum balance holds: the gas carries most of the bed's weight and never more than it, 0.85 W/A <= bed
+# pressure drop <= 1.05 W/A. With seed 000's EMMS drag (study.toml) the bed is at the edge of fluidization at
+# 0.9 m/s and part of it rests on the distributor at times: 0.92-0.97 W/A over 0.3-1 s (docs/examples/coarse.md).
 
 fluidized = [r for r in rows if r["run"] in ALL_4080 and r["t_end_s"] >= 1.0]
 problems = [f"{r['run']}: {r['failure']}" for r in rows if r["failure"]]
 problems += [f"{r['run']}: bed pressure drop {r['dp_bed_over_W']:.3f} W/A" for r in fluidized
-             if abs(r["dp_bed_over_W"] - 1) > 0.05]  # fmt: skip
+             if not 0.85 <= r["dp_bed_over_W"] <= 1.05]  # fmt: skip
 if problems:
     sys.exit("checks failed:\n  " + "\n  ".join(problems))
 carried = ", ".join(r["run"] for r in fluidized) or "none of the runs is 1 s long"
-print(f"checks passed: {len(rows)} run(s) reached their end time; bed pressure drop within 5 % of W/A: {carried}")
+print(f"checks passed: {len(rows)} run(s) reached their end time; bed pressure drop within 0.85-1.05 W/A: {carried}")
