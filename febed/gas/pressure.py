@@ -48,10 +48,11 @@ DEFAULT_OPTIONS = {
 }
 FALLBACK_OPTIONS = {"pc_type": "gamg", "pc_gamg_square_graph": 0}
 # One process and at most this many nodes with a pressure outlet: a sparse Cholesky factorisation (PETSc's own,
-# nested-dissection ordering) of the constant L, made once; every step is then two triangular solves. On the
-# seed-001 intermediate mesh (28,000 nodes, hexahedra) the pressure solve costs half of CG + ML's, on seed 000's
-# 2D bed (1,900 nodes) a fifth, for ~40 MB more memory (benchmarks/gas_step.py). Larger
-# meshes, parallel runs, closed domains (singular L) and the drag-weighted projection keep CG + AMG.
+# nested-dissection ordering) of the constant L, made once; every step is then two triangular solves, exact
+# whatever the tolerance. On seed 000's 2D bed (1,900 nodes) the pressure solve costs a fifth of CG + ML's; on
+# the seed-001 intermediate mesh (28,000 nodes, hexahedra) about the same (14-17 against 16-20 ms,
+# benchmarks/gas_step.py), for ~40 MB more memory. Larger meshes, parallel runs, closed domains (singular L)
+# and the drag-weighted projection keep CG + AMG.
 DIRECT_MAX_NODES = 50_000
 DIRECT_OPTIONS = {"ksp_type": "preonly", "pc_type": "cholesky"}
 
