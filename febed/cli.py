@@ -13,10 +13,11 @@
 Errors in the user's input (case, mesh, bed file, checkpoint, output folder, values a solver refuses) are
 printed as one clear message and exit with status 2, before anything runs: `febed run` and `febed check` run
 the pre-flight checks of `febed.preflight` (mesh tags, bed file against the case, the run's cost; `--force`
-runs a case whose estimate is refused as absurd); a run that fails (a particle escaping, ...) exits with status 3 after
-writing its last good state as a checkpoint; a run stopped by SIGINT/SIGTERM/SIGUSR1 writes a checkpoint and
-exits with 128 + the signal number (130, 143, 138); a traceback means a bug in febed (`febed run -v` shows the
-traceback of a refused value too).
+runs a case whose estimate is refused as absurd); a run that fails (a particle escaping, ...) exits with status 3
+after writing its last good state as a checkpoint, and so does a run stopped by an output error (a full disk:
+`febed.run.OutputFailure`); a run stopped by SIGINT/SIGTERM/SIGUSR1 writes a checkpoint and exits with 128 +
+the signal number (130, 143, 138), also when stopped during start-up (status.json then says so); a traceback
+means a bug in febed (`febed run -v` shows the traceback of a refused value too).
 """
 
 from __future__ import annotations
@@ -160,10 +161,67 @@ def cmd_run(args) -> int:
     """Validate, lock and prepare the output folder, and hand the case to the runner of its mode.
 
     The folder's lock (`febed.io.rundir.lock_output`) is taken before anything is written to the folder and
-    released when the run ends, however it ends.
+    released when the run ends, however it ends. Until the run's own signal handlers take over, a stop signal
+    stops at once (a KeyboardInterrupt carrying the signal as `signum`). Once the folder is the run's, an error
+    or signal the run itself did not record (start-up: mesh, bed, solver, output files) is written to
+    febed.log and status.json.
     """
+    restore_signals = _catch_startup_signals()
+    try:
+        return _run(args)
+    except BaseException as e:
+        stop = _startup_stop(e)
+        if stop is e:
+            raise
+        raise stop from None
+    finally:
+        restore_signals()
+
+
+_STARTUP_SIGNAL = [0]  # the stop signal received during start-up, if any
+
+
+def _stop_exception(signum: int) -> KeyboardInterrupt:
+    import signal
+
+    stop = KeyboardInterrupt(signal.Signals(signum).name)
+    stop.signum = signum
+    return stop
+
+
+def _startup_stop(error: BaseException) -> BaseException:
+    """The stop signal's KeyboardInterrupt if one came during start-up, whatever `error` it surfaced as, else `error`.
+
+    An exception raised by a signal handler inside a library call can come out as another one (ctypes reports
+    it as the ArgumentError of the call it interrupted).
+    """
+    if not _STARTUP_SIGNAL[0] or isinstance(error, KeyboardInterrupt) or hasattr(error, "signum"):
+        return error
+    return _stop_exception(_STARTUP_SIGNAL[0])
+
+
+def _catch_startup_signals():
+    """Make SIGINT/SIGTERM/SIGUSR1 raise KeyboardInterrupt (with `signum`); returns the restorer (main thread only)."""
+    import signal
+    import threading
+
+    _STARTUP_SIGNAL[0] = 0
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def handler(signum, frame):
+        _STARTUP_SIGNAL[0] = signum
+        raise _stop_exception(signum)
+
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)}
+    return lambda: [signal.signal(k, v) for k, v in old.items()]
+
+
+def _run(args) -> int:
+    from febed.io.checkpoint import FOLDER, remove_temporaries
     from febed.io.rundir import get_logger, held_lock, prepare_output, release_output
     from febed.preflight import preflight
+    from febed.run import forget_state, record_exit
 
     case = load_case(args.case, args.overrides)
     module = RUNNERS[case.run.mode]
@@ -188,23 +246,31 @@ def cmd_run(args) -> int:
     held = held_lock(case.output_dir()) is not None  # by this process already (the Python API): kept
     try:
         if args.restart is None:
-            outdir, checkpoint = prepare_output(case, overwrite=args.overwrite), None
+            outdir, checkpoint, meta = prepare_output(case, overwrite=args.overwrite), None, {}
         else:
-            outdir, checkpoint = _restart_target(case, args.restart, pf)
+            outdir, checkpoint, meta = _restart_target(case, args.restart, pf)
+        forget_state(outdir)
         log = get_logger(outdir, verbose=args.verbose)
-        lock = held_lock(outdir)
-        if lock is not None and lock.note:
-            log.warning(f"note: {lock.note}")
-        for note in pf.notes:
-            log.warning(f"note: {note}")
-        log.info(pf.estimate.text())
-        if checkpoint is None:
-            log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
-            log.info(f"output folder: {outdir}")
-            runner.run(case, outdir, log)
-        else:
-            log.info(f"febed: case {case.name} ({case.path}), restart, {MPI.COMM_WORLD.size} rank(s)")
-            runner.run(case, outdir, log, restart=checkpoint)
+        try:
+            lock = held_lock(outdir)
+            if lock is not None and lock.note:
+                log.warning(f"note: {lock.note}")
+            for gone in remove_temporaries(outdir / FOLDER) if MPI.COMM_WORLD.rank == 0 else []:
+                log.info(f"removed {gone.name}: the unfinished checkpoint of a run killed while writing it")
+            for note in pf.notes:
+                log.warning(f"note: {note}")
+            log.info(pf.estimate.text())
+            if checkpoint is None:
+                log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
+                log.info(f"output folder: {outdir}")
+                runner.run(case, outdir, log)
+            else:
+                log.info(f"febed: case {case.name} ({case.path}), restart, {MPI.COMM_WORLD.size} rank(s)")
+                runner.run(case, outdir, log, restart=checkpoint)
+        except BaseException as e:
+            t, step = float(meta.get("time", 0.0)), int(meta.get("step", 0))
+            record_exit(outdir, log, _startup_stop(e), case.run.end_time, t, step, restart=checkpoint is not None)
+            raise
         MPI.COMM_WORLD.barrier()  # every rank is done with the folder
     finally:
         if not held:
@@ -212,8 +278,8 @@ def cmd_run(args) -> int:
     return 0
 
 
-def _restart_target(case, restart: str, pf=None) -> tuple[Path, Path]:
-    """The run folder and checkpoint file to continue (collective).
+def _restart_target(case, restart: str, pf=None) -> tuple[Path, Path, dict]:
+    """The run folder, the checkpoint file to continue and its meta record (collective).
 
     Refuses, before anything is written, a checkpoint that does not read, is of another mode, is past the
     end time or belongs to another run (`febed.restart.checkpoint_differences` against the case, its mesh and
@@ -264,18 +330,30 @@ def _restart_target(case, restart: str, pf=None) -> tuple[Path, Path]:
         atomic_write_text(outdir / f"case.before-restart-{len(list(outdir.glob('case.before-restart-*')))}.toml", text)
         atomic_write_text(outdir / RESOLVED_CASE, _header(case) + case.to_toml())
     MPI.COMM_WORLD.barrier()
-    return outdir, checkpoint
+    return outdir, checkpoint, meta
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `febed` console script; returns the exit status."""
+    args = _parser().parse_args(argv)
+    restore_signals = _catch_startup_signals() if args.command == "run" else (lambda: None)
+    try:
+        return _main(args)
+    except KeyboardInterrupt as e:  # a stop signal while febed's modules were being imported
+        signum = getattr(e, "signum", 2)
+        _say(f"febed: stopped by {'Ctrl-C' if signum == 2 else e.args[0]} during start-up", err=True)
+        return 128 + signum
+    finally:
+        restore_signals()
+
+
+def _main(args) -> int:
     from febed.dem.solver import DEMFailure
     from febed.io.checkpoint import CheckpointError
     from febed.io.rundir import OutputError
-    from febed.run import Interrupted
+    from febed.run import Interrupted, StopNow
     from febed.solver import RunFailure
 
-    args = _parser().parse_args(argv)
     commands = {
         "run": cmd_run,
         "check": cmd_check,
@@ -301,9 +379,15 @@ def main(argv: list[str] | None = None) -> int:
     except Interrupted as e:
         _say(f"febed: {e}", err=True)
         return 128 + e.signum
-    except KeyboardInterrupt:  # Ctrl-C while setting up (packing a bed, building a mesh) or a second Ctrl-C
-        _say("febed: interrupted (Ctrl-C) before a checkpoint could be written", err=True)
-        return 130
+    except KeyboardInterrupt as e:  # a stop signal during start-up (building a mesh, packing a bed), or Ctrl-C
+        signum = getattr(e, "signum", 2)
+        name = "Ctrl-C" if signum == 2 else e.args[0]
+        if isinstance(e, StopNow):  # a second signal while the run was closing its files
+            _say(f"febed: stopped at once by a second {e.args[0]}", err=True)
+        else:
+            during = " during start-up, before the run's first step" if args.command == "run" else ""
+            _say(f"febed: stopped by {name}{during}", err=True)
+        return 128 + signum
     except CheckpointError as e:
         _say(f"febed: error: {e}", err=True)
     except MemoryError:

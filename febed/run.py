@@ -18,8 +18,18 @@ After every gas step the solver's health checks run (`CoupledSolver.check`). A f
 its message, writes the last state that passed the checks (kept in memory at each probe time) as a
 checkpoint, and exits non-zero. SIGINT/SIGTERM/SIGUSR1 (Ctrl-C, a batch system's time limit) finish the
 current gas step, write a checkpoint and stop (`Interrupted`); ranks agree on the step at which they stop.
-Under Open MPI's mpirun, SIGUSR1 is the one to send: mpirun forwards it to the ranks as it is, whereas on
-SIGTERM or SIGINT it kills them after a short grace that a gas step on a loaded machine can outlast.
+A gas step whose DEM sub-steps would take long (a tiny DEM step) is not waited for: the sub-steps ask for
+the signal every fraction of a second (`febed.dem.solver.DEM.stop_check`, agreed over the ranks) and the
+run stops with the last good state as its checkpoint (`stopped_mid_step`). A second signal stops at once
+(`StopNow`), naming the newest checkpoint there is. Under Open MPI's mpirun, SIGUSR1 is the one to send:
+mpirun forwards it to the ranks as it is, whereas on SIGTERM or SIGINT it kills them after a short grace
+that a gas step on a loaded machine can outlast.
+
+An output error (a full disk, permissions, an I/O error) while writing probes, fields, particles, a
+checkpoint or status.json stops the run on every rank (`guarded_write`, `OutputFailure`): the current
+state is written as a checkpoint if the disk takes it (the older ones are removed only after a newer one is
+complete), status.json says "failed" with the file and the error and where the newest checkpoint is, and
+`febed run` exits with status 3. The same helpers serve the pure-DEM, gas-only and one-way drivers.
 
 Definitions:
 
@@ -33,7 +43,9 @@ Definitions:
 from __future__ import annotations
 
 import math
+import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -46,14 +58,41 @@ from febed.coupling.exchange import solid_volume
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.weights import compute_weights
-from febed.dem.solver import DEMFailure
+from febed.dem.solver import DEMFailure, StopRequested
 from febed.io.checkpoint import FOLDER, CheckpointError, write_checkpoint
 from febed.io.probes import ProbeFile
 from febed.io.progress import Progress, RateMeter
-from febed.io.rundir import write_status
+from febed.io.rundir import STATUS_FILE, write_status
 from febed.solver import RunFailure, build_solver
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # finish the step, checkpoint, stop
+
+
+class Interrupted(Exception):
+    """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
+
+    def __init__(self, signum: int, message: str):
+        super().__init__(message)
+        self.signum = signum
+
+
+class StopNow(KeyboardInterrupt):
+    """A stop signal that cannot wait for the end of a step: during start-up, or a second one; `signum` is it."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class OutputFailure(RunFailure):
+    """The run's output could not be written (a full disk, permissions, an I/O error).
+
+    The message names the file and the operating system's error. `checkpoint`: it was a checkpoint that failed.
+    """
+
+    def __init__(self, message: str, checkpoint: bool = False):
+        super().__init__(message)
+        self.checkpoint = checkpoint
 
 
 def agree(comm, sig: int, *due: bool) -> tuple:
@@ -69,6 +108,106 @@ def agree(comm, sig: int, *due: bool) -> tuple:
     return (int(flags[0]), *(bool(f) for f in flags[1:]))
 
 
+# ------------------------------------------------------------------------------------------ output errors
+def os_error_text(error: OSError, path) -> str:
+    """'cannot write FILE: [Errno 28] No space left on device' (the error's own file name if it has one)."""
+    name = error.filename or path
+    what = f"[Errno {error.errno}] {error.strerror}" if error.errno and error.strerror else str(error)
+    return f"cannot write {name}: {what}"
+
+
+def guarded_write(comm, path, write, /, *args, **kwargs):
+    """`write(*args, **kwargs)` on every rank, its output errors raised as OutputFailure on every rank (collective).
+
+    An OSError (ENOSPC, EACCES, EIO, ...), or the RuntimeError of DOLFINx's XDMF/HDF5 writer, on any rank
+    becomes one OutputFailure naming the file (the error's own, else `path`) and the error; the ranks agree
+    through one allgather (none on one process). Returns what `write` returns.
+    """
+    err = result = None
+    try:
+        result = write(*args, **kwargs)
+    except OSError as e:
+        err = os_error_text(e, path)
+    except RuntimeError as e:
+        if type(e) is not RuntimeError:  # febed's own errors (RunFailure, CheckpointError, ...) are subclasses
+            raise
+        err = f"cannot write {path}: {e}"
+    if comm is not None and comm.size > 1:
+        err = next((m for m in comm.allgather(err) if m), None)
+    if err:
+        raise OutputFailure(err)
+    return result
+
+
+def close_files(comm, *files) -> None:
+    """Close each of `files` (each has `path` and `close()`; None skipped) and then raise the first OutputFailure."""
+    first = None
+    for f in files:
+        if f is None:
+            continue
+        try:
+            guarded_write(comm, f.path, f.close)
+        except OutputFailure as e:
+            first = first or e
+    if first is not None:
+        raise first
+
+
+def checkpoint_or_fail(write, *args):
+    """`write_checkpoint(*args)` (or another `write` raising CheckpointError on every rank) as OutputFailure."""
+    try:
+        return write(*args)
+    except CheckpointError as e:
+        raise OutputFailure(str(e), checkpoint=True) from None
+
+
+# -------------------------------------------------------------------------------------------------- status
+_ENDED: dict[str, str] = {}  # run folder -> the last state this process wrote to its status.json
+
+
+def write_run_status(outdir, state: str, t: float, end: float, step: int, message: str = "", comm=MPI.COMM_WORLD,
+                     collective: bool = True) -> None:  # fmt: skip
+    """Write the run's `status.json` (`febed.io.rundir.write_status`, rank 0).
+
+    `collective`: every rank calls, and a failed write raises OutputFailure on every rank. Otherwise (the
+    recording of a failure, possibly on one rank only) a failed write is said on stderr and the run goes on
+    to stop with its own error.
+    """
+    _ENDED[os.path.abspath(outdir)] = state
+    path = Path(outdir) / STATUS_FILE
+    if collective:
+        guarded_write(comm, path, write_status, outdir, state, t, end, step, message, comm)
+        return
+    try:
+        write_status(outdir, state, t, end, step, message, comm)
+    except OSError as e:
+        print(f"febed: {os_error_text(e, path)}: it could not record the run as {state}", file=sys.stderr, flush=True)
+
+
+def last_state(outdir) -> str | None:
+    """The state this process last wrote to the `status.json` of `outdir` (None: none since `forget_state`)."""
+    return _ENDED.get(os.path.abspath(outdir))
+
+
+def forget_state(outdir) -> None:
+    """Forget what this process wrote to the `status.json` of `outdir` (a new run in the same process)."""
+    _ENDED.pop(os.path.abspath(outdir), None)
+
+
+def newest_checkpoint(outdir) -> str:
+    """'the newest checkpoint is .../checkpoint_<step>.npz (t = ... s)', or 'there is no checkpoint' (this rank)."""
+    from febed.io.checkpoint import list_checkpoints, read_meta
+
+    for path in reversed(list_checkpoints(Path(outdir) / FOLDER)):
+        try:
+            t = read_meta(path)["time"]
+        except (CheckpointError, KeyError):
+            continue
+        return f"the newest checkpoint is {path} (t = {t:.6g} s)"
+    return "there is no checkpoint"
+
+
+# ------------------------------------------------------------------------------------ the end of a run
 def after_step(run, t: float, checkpoint_due: bool) -> bool:
     """The end of a step of any run (coupled, pure DEM, gas only): returns whether a progress line is due.
 
@@ -100,17 +239,58 @@ def after_step(run, t: float, checkpoint_due: bool) -> bool:
 def run_to_end(run, end: float) -> None:
     """Advance `run` (coupled, pure DEM or gas only) to `end`, then write the final checkpoint and status.
 
-    The stop signals are caught meanwhile; the handlers are restored and the run's files closed even on a
-    failure or a stop (collective).
+    The stop signals are caught meanwhile (`catch_signals`). However the run ends, its files are closed and
+    the handlers restored; an error closing them after another error is logged and does not hide the first.
+    An output error (`OutputFailure`) is recorded by `record_output_failure`; a second stop signal
+    (`StopNow`) stops at once and becomes `Interrupted` (collective).
     """
     restore_signals = run.catch_signals()
+    closed, last_output = False, True
     try:
         run.advance_to(end)
         run.checkpoint()
         run.status("finished")
-    finally:
-        restore_signals()
         run.close()
+        closed = True
+    except OutputFailure as e:
+        last_output = False
+        record_output_failure(run, e)
+        raise
+    except KeyboardInterrupt as e:
+        last_output = False
+        raise stopped_at_once(run, e) from None
+    finally:
+        try:
+            if not closed:
+                close_after_error(run, last_output and not getattr(run, "mid_step", False))
+        finally:
+            restore_signals()
+
+
+def close_after_error(run, last_output: bool) -> None:
+    """Close a run that stopped on an error or signal, with its last output if `last_output`; errors are logged."""
+    if getattr(run, "broken", False):  # a rank failed alone: collective calls would hang
+        return
+    try:
+        run.close(last_output)
+    except (RunFailure, OSError, RuntimeError) as e:
+        run.log.warning(f"could not write the last output while stopping: {e}")
+
+
+def write_good_state(run) -> str:
+    """Write the last good state (`run.good`) as a checkpoint unless this run wrote a newer one (collective).
+
+    Returns where that state is, as a clause of a message.
+    """
+    t_good = run.good[1]["time"]
+    written = getattr(run, "checkpoint_written", None)  # (time, path) of this run's newest checkpoint
+    if written is not None and written[0] >= t_good:
+        return f"last good state (t = {written[0]:.6g} s) in {written[1]}"
+    try:
+        path = run.checkpoint(run.good)
+        return f"last good state (t = {t_good:.6g} s) in {path}"
+    except (RunFailure, CheckpointError) as e:
+        return f"could not write the last good state: {e}"
 
 
 def record_failure(run, error, collective: bool = True) -> None:
@@ -119,26 +299,103 @@ def record_failure(run, error, collective: bool = True) -> None:
     Ends the progress line, writes the last good state (`run.good`) as a checkpoint if `collective` (every rank
     takes part), sets the status to failed and logs the error with where that state is.
     """
-    from febed.io.checkpoint import CheckpointError
-
     run.display.end()
-    where = ""
-    if run.good is not None and collective:
-        try:
-            path = run.checkpoint(run.good)
-            where = f"; last good state (t = {run.good[1]['time']:.6g} s) in {path}"
-        except (RunFailure, CheckpointError) as e:
-            where = f"; could not write the last good state: {e}"
-    run.status("failed", f"{error}{where}")
+    where = f"; {write_good_state(run)}" if run.good is not None and collective else ""
+    run.status("failed", f"{error}{where}", collective=False)
     run.log.error(f"run failed: {error}{where}")
 
 
-class Interrupted(Exception):
-    """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
+def record_output_failure(run, error: OutputFailure) -> None:
+    """Record a run stopped by an output error: a checkpoint of the state if one can be written, status, log.
 
-    def __init__(self, signum: int, message: str):
-        super().__init__(message)
-        self.signum = signum
+    Unless it was a checkpoint that failed, the current state (whole steps, passed the checks) is written as a
+    checkpoint; either way the message says where the newest checkpoint is. The previous checkpoints are never
+    removed before a newer one is complete (`febed.io.checkpoint.write_checkpoint`). Collective.
+    """
+    run.display.end()
+    run.output_failed = True
+    fix = "free disk space" if "No space left" in str(error) else "fix that"
+    saved = None
+    if not error.checkpoint:
+        try:
+            path = run.checkpoint()
+            saved = f"the state at t = {run.checkpoint_written[0]:.6g} s is saved in {path}"
+        except RunFailure:  # the same cause, most likely: the newest checkpoint is the one to continue from
+            pass
+    if saved:
+        where = f"; {saved}: {fix}, then continue with --restart"
+    else:
+        newest = newest_checkpoint(run.outdir)
+        again = "continue from it with --restart" if newest.startswith("the newest") else "run it again (--overwrite)"
+        either = "" if error.checkpoint else "a checkpoint of this moment could not be written either; "
+        where = f"; {either}{newest}: {fix}, then {again}"
+    message = f"{error}{where}"
+    run.status("failed", message, collective=False)
+    if run.comm.rank == 0:  # every rank knows it: said once
+        run.log.error(f"run failed: {message}")
+    error.args = (message,)
+
+
+def stopped_mid_step(run, what: str) -> Interrupted:
+    """A stop signal came in the middle of a step (`what`): write the last good state, status; the Interrupted.
+
+    The state in memory is half-way through a step, so the last complete state that passed the checks
+    (`run.good`) is what a restart continues from. Collective (the ranks agreed on the stop).
+    """
+    run.mid_step = True
+    run.display.end()
+    sig = run._signal or signal.SIGTERM
+    name = signal.Signals(sig).name
+    where = write_good_state(run)
+    message = f"stopped by {name} in the middle of {what}; {where}; continue with --restart"
+    run.status("interrupted", message, collective=False)
+    if run.comm.rank == 0:
+        run.log.warning(message)
+    return Interrupted(sig, message)
+
+
+def stopped_at_once(run, error: KeyboardInterrupt) -> Interrupted:
+    """A second stop signal (or Ctrl-C) stopped the run at once: status, log and the Interrupted (this rank only).
+
+    No checkpoint is written for the moment it came; the message names the newest checkpoint there is.
+    """
+    if run.comm.size > 1:
+        run.broken = True  # the other ranks may not have stopped: no collective calls
+    run.display.end()
+    sig = getattr(error, "signum", signal.SIGINT)
+    name = signal.Signals(sig).name
+    newest = newest_checkpoint(run.outdir)
+    then = "; continue from it with --restart" if newest.startswith("the newest") else ": start the run again"
+    message = f"stopped at once by a second {name}, without a checkpoint of this moment; {newest}{then}"
+    run.status("interrupted", message, collective=False)
+    run.log.warning(message)
+    return Interrupted(sig, message)
+
+
+def record_exit(outdir, log, error: BaseException, end: float, t: float = 0.0, step: int = 0,
+                restart: bool = False) -> None:  # fmt: skip
+    """Record in status.json and the log an error that ended `febed run` before its run recorded anything.
+
+    Errors met during start-up (building the mesh, the bed, the solver; opening the output files) or a stop
+    signal then (a KeyboardInterrupt: Ctrl-C, or another stop signal carrying `signum`) would otherwise leave
+    no status.json (`febed status`: "unknown") and nothing in febed.log. Nothing is done if the run already
+    recorded how it ended (rank 0 writes).
+    """
+    if last_state(outdir) not in (None, "running"):
+        return
+    started = last_state(outdir) == "running"
+    if isinstance(error, KeyboardInterrupt):
+        name = signal.Signals(getattr(error, "signum", signal.SIGINT)).name
+        when = "before the run's end" if started else "during start-up, before the first step"
+        then = "its checkpoints are unchanged: continue with --restart" if restart else "run it again (--overwrite)"
+        state, message = "interrupted", f"stopped by {name} {when}; {then}"
+        log.warning(message)
+    else:
+        state = "failed"
+        known = isinstance(error, (RunFailure, ValueError, OSError, RuntimeError, MemoryError))
+        message = str(error) if known and str(error) else f"{type(error).__name__}: {error}"
+        log.error(f"run failed: {message}")
+    write_run_status(outdir, state, t, end, step, message, collective=False)
 
 
 class SectionAverage:
@@ -230,14 +487,23 @@ class CoupledRun:
             path, arrays, meta = restart
             rs.restore(self, arrays, meta)
             self.restarted_from = path
-        self.probes = ProbeFile(
-            self.outdir / "probes.csv", self.columns, comm, restart_time=s.t if restart else None,
-            keep_rows=self._probe_rows,
-        )  # fmt: skip
-        self._writers()
+        self.probes = self.fields = None
+        self.broken = False  # a rank failed alone: collectives would hang
+        self.output_failed = False  # an output error stopped the run: nothing more is written
+        self.mid_step = False  # stopped in the middle of a gas step: the state in memory is not a whole step
+        self._closed = False
+        self.checkpoint_written = None  # (time, path) of the newest checkpoint this run wrote
+        try:
+            self.probes = guarded_write(
+                comm, self.outdir / "probes.csv", ProbeFile, self.outdir / "probes.csv", self.columns, comm,
+                restart_time=s.t if restart else None, keep_rows=self._probe_rows,
+            )  # fmt: skip
+            self._writers()
+        except OutputFailure:
+            close_after_error(self, False)
+            raise
         self.display = Progress(log, comm.rank)
         self.good = None  # (arrays, meta) of the last state that passed the health checks
-        self.broken = False  # a rank failed alone: collectives would hang
         self._signal = 0
         self._last_progress = self._last_checkpoint = time.perf_counter()
         self._meter = RateMeter(s.t)
@@ -253,8 +519,11 @@ class CoupledRun:
         funcs = dict(s.gas.functions())
         funcs["alpha_p"] = self.alpha
         name = "fields.xdmf" if self.segment == 0 else f"fields.restart{self.segment}.xdmf"
-        self.fields = FieldWriter(self.outdir / name, self.md.mesh, funcs, self.comm)
-        self.particles = ParticleWriter(self.outdir / "particles", comm=self.comm, entries=self._particle_files)
+        self.fields = guarded_write(self.comm, self.outdir / name, FieldWriter, self.outdir / name, self.md.mesh,
+                                    funcs, self.comm)  # fmt: skip
+        folder = self.outdir / "particles"
+        self.particles = guarded_write(self.comm, folder, ParticleWriter, folder, comm=self.comm,
+                                       entries=self._particle_files)  # fmt: skip
 
     # ------------------------------------------------------------------------------------- schedule
     def schedule(self) -> dict:
@@ -319,7 +588,8 @@ class CoupledRun:
         """Write whatever is due (probes, fields, particles); `force` writes all of them now.
 
         At each probe time the state (which has just passed the health checks) is kept in memory: a later
-        failure writes it as the last good checkpoint.
+        failure writes it as the last good checkpoint. A write that fails raises `OutputFailure` on every rank;
+        the kinds written before it count as written.
         """
         s = self.solver
         o = self.case.output
@@ -327,19 +597,24 @@ class CoupledRun:
         tol = 1e-9 * max(s.last_gas.dt if s.last_gas else 1.0, 1e-12)
         kinds = ("probe", "field", "particle")
         due = {k: (force and self.last[k] != s.t) or s.t >= self.next[k] - tol for k in kinds}
+        comm = self.comm
+
+        def written(kind: str) -> None:
+            self.last[kind] = s.t
+            self.next[kind] = s.t + getattr(o, f"{kind}_interval")
+
         if due["probe"]:
-            self.probes.write(s.t, self.probe_values())
+            guarded_write(comm, self.probes.path, self.probes.write, s.t, self.probe_values())
+            written("probe")
         if due["field"]:
             self.alpha.x.array[:] = s.alpha
-            self.fields.write(s.t)
+            guarded_write(comm, self.fields.path, self.fields.write, s.t)
+            written("field")
         if due["particle"]:
-            self.particles.write(s.t, s.dem.particles)
+            guarded_write(comm, self.particles.outdir, self.particles.write, s.t, s.dem.particles)
+            written("particle")
             self._log_balance()
             self._log_groups()
-        for kind in kinds:
-            if due[kind]:
-                self.last[kind] = s.t
-                self.next[kind] = s.t + getattr(o, f"{kind}_interval")
         if due["probe"] and not force:
             self.good = rs.capture(self)
         s.timers.output += time.perf_counter() - t0
@@ -372,12 +647,11 @@ class CoupledRun:
         arrays, meta = state if state is not None else rs.capture(self)
         meta = {**meta, "case": self.case.to_toml()}
         gathered = rs.gather(arrays, meta, self.comm)
-        try:
-            path = write_checkpoint(
-                self.outdir / FOLDER, gathered, meta, self.case.output.keep_checkpoints, self.comm
-            )  # fmt: skip
-        except CheckpointError as e:
-            raise RunFailure(str(e)) from None
+        path = checkpoint_or_fail(
+            write_checkpoint, self.outdir / FOLDER, gathered, meta, self.case.output.keep_checkpoints,
+            self.comm,
+        )  # fmt: skip
+        self.checkpoint_written = (meta["time"], path)
         if self.comm.size > 1 and state is None:  # go on from the layout a restart would have (febed.restart)
             rs.reload_particles(self, self.comm.bcast(gathered, root=0), meta)
         self._last_checkpoint = time.perf_counter()
@@ -386,10 +660,13 @@ class CoupledRun:
         s.timers.output += time.perf_counter() - t0
         return path
 
-    def status(self, state: str, message: str = "") -> None:
-        """Write `status.json`: state (running / finished / failed / interrupted), time, end time, message."""
+    def status(self, state: str, message: str = "", collective: bool = True) -> None:
+        """Write `status.json`: state (running / finished / failed / interrupted), time, end time, message.
+
+        See `write_run_status` for `collective`.
+        """
         s = self.solver
-        write_status(self.outdir, state, s.t, self.case.run.end_time, s.steps, message, self.comm)
+        write_run_status(self.outdir, state, s.t, self.case.run.end_time, s.steps, message, self.comm, collective)
 
     # ---------------------------------------------------------------------------------------- loop
     def progress(self, end: float) -> None:
@@ -406,7 +683,9 @@ class CoupledRun:
     def advance_to(self, end: float) -> None:
         """Step until `end` (s), writing output, checkpoints and progress on the way.
 
-        Raises RunFailure (after writing the last good state) or Interrupted (after a checkpoint).
+        Raises RunFailure (after writing the last good state), OutputFailure, or Interrupted (after a
+        checkpoint; a signal that comes during a long gas step stops its DEM sub-steps within a second or so and
+        the last good state is written, `stopped_mid_step`).
         """
         s = self.solver
         self.output(force=s.steps == 0)
@@ -417,6 +696,8 @@ class CoupledRun:
             try:
                 s.step()
                 s.check()
+            except StopRequested:  # on every rank
+                raise stopped_mid_step(self, f"the gas step from t = {s.t:.6g} s") from None
             except RunFailure as e:
                 self.fail(e)
                 raise
@@ -441,25 +722,34 @@ class CoupledRun:
         """Record a failure: write the last good state as a checkpoint (if `collective`) and the status."""
         record_failure(self, error, collective)
 
-    def close(self) -> None:
-        """Write the last output and close the files (not after a one-rank failure on several ranks)."""
-        if self.broken:
+    def close(self, last_output: bool = True) -> None:
+        """Write the last output (if `last_output`) and close the files; a second call does nothing.
+
+        Nothing is done after a one-rank failure on several ranks (collective calls would hang), and no more
+        output is written after an output error. Raises OutputFailure if a write or close fails.
+        """
+        if self.broken or self._closed:
             return
-        self.output(force=True)
-        self.probes.close()
-        self.fields.close()
+        self._closed = True
+        try:
+            if last_output and not self.output_failed:
+                self.output(force=True)
+        finally:
+            close_files(self.comm, self.probes, self.fields)
 
     # ---------------------------------------------------------------------------------------- signals
     def catch_signals(self):
         """Handle STOP_SIGNALS by stopping after the current gas step; returns a function restoring the handlers."""
-        return catch_stop_signals(self, "this gas step")
+        return catch_stop_signals(self, "this gas step", self.solver.dem)
 
 
-def catch_stop_signals(run, after: str):
+def catch_stop_signals(run, after: str, dem=None):
     """Install STOP_SIGNALS handlers that set `run._signal` (logged to `run.log`: "stopping after `after`").
 
-    A second signal raises KeyboardInterrupt (stop now). Returns a function restoring the previous handlers;
-    outside the main thread (no handlers possible) a no-op.
+    A second signal raises `StopNow` (stop at once). With a `dem`, its long sub-step loops ask for the signal
+    every fraction of a second (`DEM.stop_check`, agreed over the ranks) and stop early (`StopRequested`).
+    Returns a function restoring the previous handlers (and removing the DEM's check); outside the main
+    thread (no handlers possible) a no-op.
     """
     import threading
 
@@ -468,12 +758,25 @@ def catch_stop_signals(run, after: str):
 
     def handler(signum, frame):
         if run._signal:  # a second Ctrl-C: stop now
-            raise KeyboardInterrupt
+            raise StopNow(signum)
         run._signal = signum
         run.log.warning(f"{signal.Signals(signum).name} received: stopping after {after}")
 
+    def stop_check() -> bool:
+        run._signal = agree(run.comm, run._signal)[0]
+        return bool(run._signal)
+
     old = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
-    return lambda: [signal.signal(k, v) for k, v in old.items()]
+    if dem is not None:
+        dem.stop_check = stop_check
+
+    def restore() -> None:
+        for k, v in old.items():
+            signal.signal(k, v)
+        if dem is not None:
+            dem.stop_check = None
+
+    return restore
 
 
 def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):

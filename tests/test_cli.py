@@ -178,4 +178,4 @@ def test_ctrl_c_during_set_up_is_a_message_and_status_130(case_file, monkeypatch
 
     monkeypatch.setattr(cli, "cmd_check", interrupted)
     assert cli.main(["check", str(case_file)]) == 130
-    assert "interrupted (Ctrl-C) before a checkpoint could be written" in capsys.readouterr().err
+    assert capsys.readouterr().err == "febed: stopped by Ctrl-C\n"

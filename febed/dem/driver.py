@@ -43,7 +43,7 @@ from febed.dem.insertion import (
     settle,
 )
 from febed.dem.particles import Particles
-from febed.dem.solver import DEM, DEMFailure
+from febed.dem.solver import DEM, DEMFailure, StopRequested
 from febed.dem.walls import Walls, touching
 
 
@@ -237,6 +237,7 @@ class DEMRun:
         from febed.io.particles import ParticleWriter
         from febed.io.progress import Progress, RateMeter
         from febed.meshing import load_case_mesh
+        from febed.run import guarded_write
 
         self.case, self.outdir, self.log, self.comm = case, Path(outdir), log, comm
         md = load_case_mesh(case, comm)
@@ -263,9 +264,12 @@ class DEMRun:
             self.restarted_from = path
         self.lo = np.minimum.reduce(comm.allgather(md.mesh.geometry.x.min(axis=0))) - 1e-9
         self.hi = np.maximum.reduce(comm.allgather(md.mesh.geometry.x.max(axis=0))) + 1e-9
-        self.writer = ParticleWriter(self.outdir / "particles", comm=comm, entries=files)
+        folder = self.outdir / "particles"
+        self.writer = guarded_write(comm, folder, ParticleWriter, folder, comm=comm, entries=files)
         self.display = Progress(log, comm.rank)
         self.good = None  # (arrays, meta) of the last particle output
+        self.output_failed = False  # an output error stopped the run
+        self.checkpoint_written = None  # (time, path) of the newest checkpoint this run wrote
         self._signal = 0
         self._last_progress = self._last_checkpoint = time.perf_counter()
         self._meter = RateMeter(self.dem.time)
@@ -292,44 +296,56 @@ class DEMRun:
         """Write a checkpoint of the current state, or of `state` from `capture` (collective)."""
         from febed import restart as rs
         from febed.io.checkpoint import FOLDER, write_checkpoint
+        from febed.run import checkpoint_or_fail
 
         arrays, meta = state if state is not None else self.capture()
         meta = {**meta, "case": self.case.to_toml()}
-        path = write_checkpoint(
-            self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta, self.case.output.keep_checkpoints,
-            self.comm,
+        path = checkpoint_or_fail(
+            write_checkpoint, self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta,
+            self.case.output.keep_checkpoints, self.comm,
         )  # fmt: skip
+        self.checkpoint_written = (meta["time"], path)
         self._last_checkpoint = time.perf_counter()
         self.next_ckpt = self.dem.time + self.case.output.checkpoint_interval
         self.log.info(f"checkpoint at t = {meta['time']:.6g} s (DEM step {meta['step']}): {path}")
         return path
 
-    def status(self, state: str, message: str = "") -> None:
-        """Write `status.json` (running / finished / failed / interrupted) at the DEM's time."""
-        from febed.io.rundir import write_status
+    def status(self, state: str, message: str = "", collective: bool = True) -> None:
+        """Write `status.json` (running / finished / failed / interrupted) at the DEM's time (`write_run_status`)."""
+        from febed.run import write_run_status
 
         dem = self.dem
-        write_status(self.outdir, state, dem.time, self.case.run.end_time, dem.steps, message, self.comm)
+        end = self.case.run.end_time
+        write_run_status(self.outdir, state, dem.time, end, dem.steps, message, self.comm, collective)
 
     # ------------------------------------------------------------------------------------- loop
-    def output(self) -> None:
-        """Write the particles and keep the state as the last good one."""
-        self.writer.write(self.dem.time, self.dem.particles)
+    def output(self, scheduled: bool = True) -> None:
+        """Write the particles, move the next output time on if `scheduled`, keep the state as the last good one.
+
+        A failed write raises `OutputFailure` on every rank (and leaves the schedule as it was).
+        """
+        from febed.run import guarded_write
+
+        guarded_write(self.comm, self.writer.outdir, self.writer.write, self.dem.time, self.dem.particles)
+        if scheduled:
+            self.next_out += self.case.output.particle_interval
         _log_balance(self.dem, self.log)
         self.good = self.capture()
 
     def advance_to(self, end: float) -> None:
         """Step to `end` (s), writing particles, checkpoints and progress (collective).
 
-        Raises DEMFailure (after writing the last good state) or `febed.run.Interrupted` (after a checkpoint).
+        Raises DEMFailure (after writing the last good state), `febed.run.OutputFailure` or
+        `febed.run.Interrupted` (after a checkpoint).
         """
         from febed.run import after_step
 
         dem = self.dem
         dt = dem.dt
-        o = self.case.output
         if self.good is None:
             if self.restarted_from is None:
+                self.output(scheduled=False)
+            elif dem.time >= self.next_out - 0.5 * dt:  # due when the run before stopped on an output error
                 self.output()
             else:
                 self.good = self.capture()
@@ -342,13 +358,14 @@ class DEMRun:
             except DEMFailure as e:  # raised on every rank
                 self.fail(f"the particles blew up: {e}")
                 raise
+            except StopRequested:  # a stop signal, agreed on every rank: the particles are at a whole step
+                pass  # `after_step` below writes the checkpoint and stops
             x = dem.particles.pos[: dem.particles.n_owned]
             gone = np.any((x < self.lo) | (x > self.hi), axis=1)
             if gone.any():
                 self.left += int(gone.sum())
                 dem.remove_particles(gone)
             if dem.time >= self.next_out - 0.5 * dt:
-                self.next_out += o.particle_interval
                 self.output()
             if after_step(self, dem.time, dem.time >= self.next_ckpt - 0.5 * dt):
                 self.progress(end)
@@ -371,14 +388,14 @@ class DEMRun:
 
         record_failure(self, message)
 
-    def close(self) -> None:
+    def close(self, last_output: bool = True) -> None:
         """Nothing to close: every particle output is a complete file of its own."""
 
     def catch_signals(self):
-        """Handle `febed.run.STOP_SIGNALS` by stopping after the current chunk of steps; returns the restorer."""
+        """Handle `febed.run.STOP_SIGNALS` by stopping within a second (`DEM.stop_check`); returns the restorer."""
         from febed.run import catch_stop_signals
 
-        return catch_stop_signals(self, "these DEM steps")
+        return catch_stop_signals(self, "these DEM steps", self.dem)
 
 
 CHUNK = 500  # DEM steps per `advance` call between output, signal and progress checks

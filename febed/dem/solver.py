@@ -9,6 +9,10 @@ With MPI, `attach_exchange` gives the DEM a `febed.parallel.ParticleExchange`, i
 decision taken over all ranks, particles migrating at rebuilds with their history and auxiliary arrays),
 and every call that changes or reads the global state (advance, rebuild, dt, the energies) is collective.
 Without an exchange the serial loop runs unchanged, compiled over many steps.
+
+A run that must stay responsive to stop signals sets `DEM.stop_check`: a long `advance` then asks it
+between chunks of STOP_CHECK_WORK particle steps (a fraction of a second of compiled stepping, however
+small the step) and stops at a whole step if it says so (`StopRequested`).
 """
 
 from __future__ import annotations
@@ -36,12 +40,21 @@ from febed.dem.particles import Particles
 from febed.dem.walls import Walls, build_wall_pairs, wall_overlap_squares
 
 BLOW_UP_JUMP = 1000.0  # a jump in one step beyond this many times the cloud's size is a blow-up (`DEM._blow_up`)
+STOP_CHECK_WORK = 1_000_000  # particle steps between two questions to `DEM.stop_check` (a fraction of a second)
 
 
 class DEMFailure(RuntimeError):
     """The particles blew up: a position is no longer finite, or a particle jumped absurdly far in one step.
 
     Found when the pair list is rebuilt (`DEM._blow_up`), agreed over the ranks: raised on every rank.
+    """
+
+
+class StopRequested(Exception):
+    """`DEM.stop_check` asked `advance` to stop early (a stop signal reached the run).
+
+    The particles are at the end of a whole step and `time` and `steps` count the steps made; the rest of the
+    steps asked for were not made. Raised on every rank (the ranks agree through `stop_check`).
     """
 
 
@@ -128,6 +141,9 @@ class DEM:
         self._lists_valid = False  # pair and wall lists index the current rows
         self._since_sort = 0
         self.pos_ref = np.zeros((0, 3))
+        # `stop_check() -> bool`, asked every STOP_CHECK_WORK particle steps within a long `advance` (collective
+        # with MPI: it must give every rank the same answer); True stops the advance (StopRequested)
+        self.stop_check = None
 
     # ------------------------------------------------------------------ construction from a case
     @classmethod
@@ -426,18 +442,40 @@ class DEM:
             self.rebuild()
         if self.integrator.needs_initial_forces and not self._forces_valid:
             self.compute_forces()
-        done = 0
+        every = self._stop_every()
+        done = since = 0
         resume = False
         while done < n_steps:
-            k, worst, code = self._run(n_steps - done, dt, resume)
+            k, worst, code = self._run(min(n_steps - done, max(1, every - since)), dt, resume)
             done += k
+            since += k
             self.max_overlap = max(self.max_overlap, worst)
             if code:
                 self.rebuild()
-            resume = code == 2
+            resume = code == 2  # the next step's drift is made: only a whole step may end the call
+            if since >= every and not resume and done < n_steps:
+                since = 0
+                self._ask_stop(done, dt)
         self._forces_valid = True
         self.time += n_steps * dt
         self.steps += n_steps
+
+    def _stop_every(self) -> int:
+        """Steps between two questions to `stop_check` (collective with MPI); never asked without one."""
+        if self.stop_check is None:
+            return 1 << 62
+        ex = self.exchange
+        n = self.count() // ex.comm.size if ex is not None else self.particles.n_owned  # a rank's share of the work
+        return max(1, STOP_CHECK_WORK // max(n, 1))
+
+    def _ask_stop(self, done: int, dt: float) -> None:
+        """Raise StopRequested after `done` steps of dt if `stop_check` says so (collective with MPI)."""
+        if not self.stop_check():
+            return
+        self._forces_valid = True
+        self.time += done * dt
+        self.steps += done
+        raise StopRequested(f"stopped after {done} DEM steps, at t = {self.time:.6g} s")
 
     def _run(self, n_steps: int, dt: float, resume: bool):
         P = self.particles
@@ -468,8 +506,15 @@ class DEM:
         if verlet and ex.any(not self._forces_valid):
             ex.update_ghosts(P, P.vel, P.omega, spin=self.params.rotation)
             self.compute_forces()
-        worst = self.integrator.staged(self, n_steps, dt)
-        self.max_overlap = max(self.max_overlap, worst)
+        every = self._stop_every()
+        done = 0
+        while done < n_steps:
+            k = min(every, n_steps - done)
+            worst = self.integrator.staged(self, k, dt)
+            self.max_overlap = max(self.max_overlap, worst)
+            done += k
+            if done < n_steps:
+                self._ask_stop(done, dt)
         self._forces_valid = True
         self.time += n_steps * dt
         self.steps += n_steps

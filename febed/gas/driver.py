@@ -44,6 +44,7 @@ class GasRun:
         `eps`: None for the uniform `gas.void_fraction`, or a callable eps(x, t) -> (n,) array.
         """
         from febed.meshing import load_case_mesh
+        from febed.run import guarded_write
 
         if eps is not None and not callable(eps):
             raise ValueError("eps must be a callable eps(x, t) -> (n,) array, or None for gas.void_fraction")
@@ -66,9 +67,12 @@ class GasRun:
             s.set_void_fraction(eps(s.x, 0.0))
         self.next_ckpt = s.t + case.output.checkpoint_interval
         name = "fields.xdmf" if self.segment == 0 else f"fields.restart{self.segment}.xdmf"
-        self.writer = FieldWriter(self.outdir / name, self.md.mesh, s.functions(), comm)
+        self.writer = guarded_write(comm, self.outdir / name, FieldWriter, self.outdir / name, self.md.mesh,
+                                    s.functions(), comm)  # fmt: skip
         self.display = Progress(log, comm.rank)
         self.good = None  # (arrays, meta) of the last state that passed the checks
+        self.output_failed = False  # an output error stopped the run
+        self.checkpoint_written = None  # (time, path) of the newest checkpoint this run wrote
         self.last_info = None
         self._signal = 0
         self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
@@ -90,28 +94,27 @@ class GasRun:
 
     def checkpoint(self, state=None) -> Path:
         """Write a checkpoint of the current state, or of `state` from `capture` (collective)."""
-        from febed.io.checkpoint import FOLDER, CheckpointError, write_checkpoint
-        from febed.solver import RunFailure
+        from febed.io.checkpoint import FOLDER, write_checkpoint
+        from febed.run import checkpoint_or_fail
 
         arrays, meta = state if state is not None else self.capture()
         meta = {**meta, "case": self.case.to_toml()}
-        try:
-            path = write_checkpoint(
-                self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta, self.case.output.keep_checkpoints,
-                self.comm,
-            )  # fmt: skip
-        except CheckpointError as e:
-            raise RunFailure(str(e)) from None
+        path = checkpoint_or_fail(
+            write_checkpoint, self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta,
+            self.case.output.keep_checkpoints, self.comm,
+        )  # fmt: skip
+        self.checkpoint_written = (meta["time"], path)
         self._last_checkpoint = time.perf_counter()
         self.next_ckpt = self.solver.t + self.case.output.checkpoint_interval
         self.log.info(f"checkpoint at t = {meta['time']:.6g} s (gas step {meta['step']}): {path}")
         return path
 
-    def status(self, state: str, message: str = "") -> None:
-        """Write `status.json` (running / finished / failed / interrupted)."""
-        from febed.io.rundir import write_status
+    def status(self, state: str, message: str = "", collective: bool = True) -> None:
+        """Write `status.json` (running / finished / failed / interrupted; `febed.run.write_run_status`)."""
+        from febed.run import write_run_status
 
-        write_status(self.outdir, state, self.solver.t, self.case.run.end_time, self.steps, message, self.comm)
+        end = self.case.run.end_time
+        write_run_status(self.outdir, state, self.solver.t, end, self.steps, message, self.comm, collective)
 
     def problem(self) -> str | None:
         """What is wrong with the gas fields after a step (the same on every rank; collective), or None."""
@@ -135,13 +138,16 @@ class GasRun:
 
         Raises RunFailure (after writing the last good state) or `febed.run.Interrupted` (after a checkpoint).
         """
-        from febed.run import after_step
+        from febed.run import after_step, guarded_write
         from febed.solver import RunFailure
 
         s = self.solver
         o = self.case.output
         if self.restarted_from is None and self.steps == 0:
-            self.writer.write(s.t)
+            guarded_write(self.comm, self.writer.path, self.writer.write, s.t)
+        elif s.t >= self.next_out * (1 - 1e-12):  # due when the run before stopped on an output error
+            guarded_write(self.comm, self.writer.path, self.writer.write, s.t)
+            self.next_out += o.field_interval
         if self.good is None:
             self.good = self.capture()
         self.status("running")
@@ -165,7 +171,7 @@ class GasRun:
                 raise err
             wrote = s.t >= self.next_out * (1 - 1e-12)
             if wrote:
-                self.writer.write(s.t)
+                guarded_write(self.comm, self.writer.path, self.writer.write, s.t)
                 self.next_out += o.field_interval
             show = after_step(self, s.t, s.t >= self.next_ckpt - 1e-12 * end)
             if wrote or show or self.steps % GOOD_EVERY == 0:
@@ -205,9 +211,11 @@ class GasRun:
 
         return catch_stop_signals(self, "this gas step")
 
-    def close(self) -> None:
-        """Close the field file."""
-        self.writer.close()
+    def close(self, last_output: bool = True) -> None:
+        """Close the field file (OutputFailure if that fails; a second call does nothing)."""
+        from febed.run import close_files
+
+        close_files(self.comm, self.writer)
 
 
 def run(case, outdir, log: logging.Logger | None = None, eps=None, mesh_data=None, restart=None) -> VANSSolver:

@@ -5,8 +5,9 @@ arrays (gas nodal fields with their node coordinates, particle arrays, contact h
 ids, counters) and a JSON `meta` record (time, step, febed version, rank count, the resolved case). Rank 0
 writes it to a temporary name in the same folder, flushes and fsyncs it, and renames it into place: a
 file with a final name is always complete, so a `kill -9` while writing leaves at worst a stray temporary
-file and the previous checkpoint still valid. Only the newest `keep` checkpoints are kept; older ones are
-removed after the new one is in place.
+file (`.checkpoint_<step>.npz.*.tmp`, removed by `remove_temporaries` when the next run of the folder
+starts) and the previous checkpoint still valid. Only the newest `keep` checkpoints are kept; older ones
+are removed after the new one is in place, so a failed write (a full disk) never costs the last good one.
 
 Arrays are gathered to rank 0 in a layout that does not depend on the rank count (particles by global id,
 nodal fields with their coordinates), so a run can restart on another number of ranks.
@@ -61,7 +62,8 @@ def write_checkpoint(folder: Path, arrays: dict[str, np.ndarray], meta: dict, ke
             for old in list_checkpoints(folder)[:-keep]:
                 old.unlink(missing_ok=True)
         except OSError as e:
-            err = f"cannot write checkpoint {path}: {e.strerror or e} (check free disk space and permissions)"
+            why = f"[Errno {e.errno}] {e.strerror}" if e.errno and e.strerror else str(e)
+            err = f"cannot write checkpoint {path}: {why}"
     err = comm.bcast(err, root=0)
     if err:
         raise CheckpointError(err)
@@ -72,7 +74,7 @@ def _atomic_npz(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, __meta__=np.array(json.dumps(meta)), **arrays)
+            _savez(f, {"__meta__": np.array(json.dumps(meta)), **arrays})
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -85,6 +87,18 @@ def _atomic_npz(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def _savez(f, arrays: dict[str, np.ndarray]) -> None:
+    """`np.savez(f, **arrays)`, with the archive closed even when a write fails (a full disk).
+
+    np.savez leaves a failed archive open until the garbage collector closes it on a closed file, which
+    prints an ignored exception; here the first error is the one raised.
+    """
+    with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
+        for key, val in arrays.items():
+            with z.open(key + ".npy", "w", force_zip64=True) as out:
+                np.lib.format.write_array(out, np.asanyarray(val), allow_pickle=False)
 
 
 def identity(arrays: dict[str, np.ndarray], meta: dict) -> dict:
@@ -104,6 +118,25 @@ def identity(arrays: dict[str, np.ndarray], meta: dict) -> dict:
         left = (meta.get("solver") or {}).get("left_outlet", (meta.get("run") or {}).get("left"))
         out["left"] = int(left) if left is not None else None
     return out
+
+
+def remove_temporaries(folder: Path) -> list[Path]:
+    """Remove the temporary files of checkpoint writes that never finished (a run killed while writing).
+
+    Call it only while holding the run folder's lock (`febed.io.rundir.lock_output`): no other process then
+    writes checkpoints there. Returns the files removed.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    gone = []
+    for p in sorted(folder.glob(".checkpoint_*.npz.*.tmp")):
+        try:
+            p.unlink()
+            gone.append(p)
+        except FileNotFoundError:
+            pass
+    return gone
 
 
 def list_checkpoints(folder: Path) -> list[Path]:

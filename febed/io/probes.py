@@ -72,12 +72,14 @@ class ProbeFile:
         self.rows += 1
 
     def close(self) -> None:
-        """Flush to disk and close."""
-        if self._f is not None:
-            self._f.flush()
-            os.fsync(self._f.fileno())
-            self._f.close()
-            self._f = None
+        """Flush to disk and close; a second call does nothing, even after a failed close (OSError)."""
+        f, self._f = self._f, None
+        if f is not None:
+            try:
+                f.flush()
+                os.fsync(f.fileno())
+            finally:
+                f.close()
 
 
 def read_probes(path: str | os.PathLike) -> dict[str, list[float]]:

@@ -74,7 +74,19 @@ def write_status(outdir: Path, state: str, time: float, end_time: float, step: i
     if message:
         info["message"] = message
     info.update(host=socket.gethostname(), pid=os.getpid())  # which process wrote it (`running_process`)
-    atomic_write_text(Path(outdir) / STATUS_FILE, json.dumps(info, indent=1) + "\n")
+    text = json.dumps(info, indent=1) + "\n"
+    try:
+        atomic_write_text(Path(outdir) / STATUS_FILE, text)
+    except OSError as e:  # a full disk has no room for the temporary copy; the file's own block is enough
+        if e.errno != errno.ENOSPC or not (Path(outdir) / STATUS_FILE).is_file():
+            raise
+        fd = os.open(Path(outdir) / STATUS_FILE, os.O_WRONLY)
+        try:
+            os.pwrite(fd, text.encode(), 0)
+            os.ftruncate(fd, len(text.encode()))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def running_process(outdir: Path) -> int | None:
@@ -421,6 +433,18 @@ class _RankFilter(logging.Filter):
         return self.rank == 0 or record.levelno >= logging.WARNING
 
 
+class _LogFile(logging.FileHandler):
+    """febed.log: a write that fails (a full disk) is said once on stderr, not as a traceback per line."""
+
+    failed = False
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        error = sys.exc_info()[1]
+        if not self.failed:
+            self.failed = True
+            print(f"febed: cannot write {self.baseFilename}: {error} (the console keeps the log)", file=sys.stderr)
+
+
 def get_logger(outdir: Path | None = None, comm=MPI.COMM_WORLD, verbose: bool = False) -> logging.Logger:
     """The `febed` logger: console (rank 0; warnings from every rank) and, if `outdir`, `outdir/febed.log`."""
     log = logging.getLogger("febed")
@@ -435,7 +459,7 @@ def get_logger(outdir: Path | None = None, comm=MPI.COMM_WORLD, verbose: bool = 
     console.addFilter(_RankFilter(comm.rank))
     log.addHandler(console)
     if outdir is not None and comm.rank == 0:
-        fh = logging.FileHandler(Path(outdir) / LOG_FILE, mode="a")
+        fh = _LogFile(Path(outdir) / LOG_FILE, mode="a")
         fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(fh)
     return log
