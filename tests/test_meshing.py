@@ -107,7 +107,12 @@ def test_case_mesh_checks_the_tags_a_boundary_names(tmp_path):
         data = {
             "run": {"mode": "cfd-dem"},
             "mesh": {"builtin": "wang2d"},
-            "gas": {"boundary": {"inlet": {"type": "inlet", "velocity": 0.9, key: ["nozzle"]}}},
+            "gas": {
+                "boundary": {
+                    "inlet": {"type": "inlet", "velocity": 0.9, key: ["nozzle"]},
+                    "outlet": {"type": "outlet"},
+                }
+            },
         }
         with pytest.raises(MeshError, match=rf"\[gas.boundary.inlet\] {key} names facet tag\(s\) 'nozzle'"):
             load_case_mesh(load_case(data=data), cache_dir=tmp_path)
