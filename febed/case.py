@@ -137,6 +137,12 @@ def load_case(
         overrides: `section.key=value` strings, as given to `--set` (value parsed as TOML, else a string).
         data: an already parsed case (Python API); overlaid on the file when both are given.
         check_files: check that the files the case names (mesh, packed bed) exist.
+
+    Returns:
+        The validated `Case`: one typed section per table (`case.gas.density`, ...), every default filled in.
+
+    Raises:
+        CaseError: every problem found, each naming its key or file and what is allowed.
     """
     source = str(path) if path is not None else "case"
     raw: dict[str, Any] = {}

@@ -470,7 +470,19 @@ def builtin_msh_path(name: str, level: str, cell: str, size: float, cache_dir: P
 
 
 def load_case_mesh(case, comm=MPI.COMM_WORLD, cache_dir: Path | None = None) -> MeshData:
-    """The mesh a validated case names (`[mesh] file` or `builtin`), checked against its boundary tags."""
+    """The mesh a validated case names (`[mesh] file` or `builtin`), checked against its boundary tags.
+
+    Args:
+        case: a validated `Case`.
+        comm: the MPI communicator the mesh is distributed over.
+        cache_dir: where a built-in mesh's .msh file is written (default: `mesh/` in the case's output folder).
+
+    Returns:
+        `MeshData`: the distributed DOLFINx mesh with its facet and cell tags, the facet tags by name.
+
+    Raises:
+        MeshError: a missing or unreadable mesh file, or a boundary naming a tag the mesh lacks.
+    """
     m = case.mesh
     if m.file:
         md = load_msh(case.resolve_path(m.file), comm)

@@ -446,7 +446,13 @@ class CoupledRun:
     def __init__(self, case, outdir: Path, log, comm=MPI.COMM_WORLD, md=None, restart=None):
         """Build the mesh (unless given), the coupled solver, the probes and the writers.
 
-        `restart`: (path, arrays, meta) of a checkpoint (`febed.io.checkpoint.load_checkpoint`) to continue.
+        Args:
+            case: a validated `Case` (`febed.load_case`) of mode "cfd-dem".
+            outdir: its output folder, prepared and locked by `febed.prepare_output`.
+            log: the logger to report to (`febed.get_logger(outdir)`).
+            comm: the MPI communicator (every rank builds the run together).
+            md: an already loaded mesh (`febed.load_case_mesh`); None loads the case's.
+            restart: (path, arrays, meta) of a checkpoint (`febed.io.checkpoint.load_checkpoint`) to continue.
         """
         from febed.meshing import load_case_mesh
 
@@ -780,9 +786,20 @@ def catch_stop_signals(run, after: str, dem=None):
 
 
 def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
-    """Run a coupled case to `run.end_time` (called by `febed run`); returns the CoupledRun.
+    """Run a coupled case to `run.end_time`, as `febed run` does.
 
-    `restart`: a checkpoint file or run folder to continue from (its newest valid checkpoint).
+    Args:
+        case: a validated `Case` of mode "cfd-dem".
+        outdir: its output folder, prepared and locked by `febed.prepare_output`.
+        log: the logger to report to.
+        comm: the MPI communicator.
+        restart: a checkpoint file or run folder to continue from (its newest valid checkpoint).
+
+    Returns:
+        The finished `CoupledRun` (its files closed).
+
+    Raises:
+        RunFailure: the run could not go on (after writing its last good state and a failed status).
     """
     from febed.io.checkpoint import load_checkpoint
 

@@ -444,7 +444,16 @@ class CoupledSolver:
 
 
 def build_solver(case, md, log) -> CoupledSolver:
-    """The coupled solver of a case on mesh `md`: DEM (walls, bed) + gas + coupling arrays."""
+    """The coupled solver of a case on a mesh: DEM (walls, bed) + gas + coupling arrays.
+
+    Args:
+        case: a validated `Case` of mode "cfd-dem".
+        md: the case's mesh (`febed.load_case_mesh`).
+        log: the logger to report to.
+
+    Returns:
+        A `CoupledSolver` at t = 0 (or the bed's state): `step()` advances one gas step.
+    """
     from febed.dem.driver import build_dem
     from febed.gas.vans import VANSSolver
 

@@ -83,7 +83,14 @@ class ProbeFile:
 
 
 def read_probes(path: str | os.PathLike) -> dict[str, list[float]]:
-    """Read a probe CSV into {column: values} (empty cells as NaN)."""
+    """Read a probe CSV (a run's `probes.csv`).
+
+    Args:
+        path: the CSV file.
+
+    Returns:
+        {column name: list of values}, one value per row (empty cells as NaN).
+    """
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
     header, body = rows[0], [r for r in rows[1:] if r]

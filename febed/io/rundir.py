@@ -446,7 +446,16 @@ class _LogFile(logging.FileHandler):
 
 
 def get_logger(outdir: Path | None = None, comm=MPI.COMM_WORLD, verbose: bool = False) -> logging.Logger:
-    """The `febed` logger: console (rank 0; warnings from every rank) and, if `outdir`, `outdir/febed.log`."""
+    """The `febed` logger: console (rank 0; warnings from every rank) and, if `outdir`, `outdir/febed.log`.
+
+    Args:
+        outdir: the run's output folder (from `prepare_output`); None logs to the console only.
+        comm: the MPI communicator of the run.
+        verbose: log debug messages too.
+
+    Returns:
+        The configured `logging.Logger` named "febed".
+    """
     log = logging.getLogger("febed")
     log.setLevel(logging.DEBUG if verbose else logging.INFO)
     log.propagate = False
