@@ -20,7 +20,6 @@ apt_ensure = missing=""; for p in $(1); do \
 	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q $$missing; \
 	fi
 export OMPI_MCA_rmaps_base_oversubscribe := 1
-export NUMBA_CACHE_DIR := $(CURDIR)/.venv/numba-cache
 
 .PHONY: setup demo test test-serial test-mpi test-all bench lint docs clean
 setup: $(STAMP)
@@ -64,4 +63,4 @@ docs: setup
 	@echo "febed docs: open docs/_build/html/index.html"
 
 clean:
-	rm -rf $(VENV) .venv/numba-cache docs/_build
+	rm -rf $(VENV) docs/_build

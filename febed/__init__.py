@@ -27,7 +27,10 @@ These names are imported on first use, so `import febed` itself loads no DOLFINx
 
 from importlib import import_module
 
+from febed.kernel_cache import configure as _configure_kernel_cache
+
 __version__ = "0.1.0"
+_configure_kernel_cache()  # before any kernel is defined: a Numba cache keyed on the kernels' sources
 
 _API = {
     "load_case": "febed.case",

@@ -12,7 +12,8 @@ pairs). The law is *passed into* the neighbour loop through the type of `p`: `pa
 Numba overload that dispatches at compile time on the parameter class, so the force loops in
 `febed.dem.forces` are written once and compiled (and cached) once per law. (Numba 0.56 cannot cache
 kernels that take a jitted function as an argument, hence the dispatch on the parameter type.)
-After editing a law, delete `febed/dem/__pycache__` so the cached force loops are recompiled.
+The compiled force loops are cached under a key of the kernels' sources (`febed.kernel_cache`): after a
+law is edited they are recompiled with it.
 
 `h` is the tangential spring elongation of the pair (m), oriented as a's displacement relative to b.
 `dt_eval` is the time over which the current tangential velocity is added to the stored elongation for
