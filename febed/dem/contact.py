@@ -149,10 +149,10 @@ def _spring(p, fn_abs, tx, ty, tz, vt_damp, hx, hy, hz, dt):
     fx = -p.kt * ex - vt_damp * tx
     fy = -p.kt * ey - vt_damp * ty
     fz = -p.kt * ez - vt_damp * tz
-    f = math.sqrt(fx * fx + fy * fy + fz * fz)
+    f2 = fx * fx + fy * fy + fz * fz
     cap = p.mu * fn_abs
-    if f > cap:  # Coulomb limit: slide, and reset the spring to the elongation the capped force implies
-        s = cap / f
+    if f2 > cap * cap:  # Coulomb limit: slide, and reset the spring to the elongation the capped force implies
+        s = cap / math.sqrt(f2)
         fx *= s
         fy *= s
         fz *= s

@@ -53,10 +53,12 @@ def compute_forces(
     Returns the largest overlap relative to the smaller diameter of its pair (a wall: the particle's).
     """
     rot = 1.0 if rotation else 0.0
-    invm = np.empty(n)  # 1/m and r^2/I once per particle instead of once per pair
+    invm = np.empty(n)  # 1/m, r^2/I and 1/d once per particle instead of once per pair
     kr = np.empty(n)
+    invd = np.empty(n)
     for i in range(n):
         invm[i] = 1.0 / mass[i]
+        invd[i] = 1.0 / diameter[i]
         r = 0.5 * diameter[i]
         kr[i] = r * r / inertia[i] * rot
         for a in range(3):
@@ -86,13 +88,15 @@ def compute_forces(
             d2 = dx * dx + dy * dy + dz * dz
             rs = ri + rj
             if d2 >= rs * rs or d2 == 0.0:
-                hist_out[k, 0] = 0.0
-                hist_out[k, 1] = 0.0
-                hist_out[k, 2] = 0.0
+                # no contact: no elongation (written only if there is one: most separated pairs stay at zero)
+                if hist_out[k, 0] != 0.0 or hist_out[k, 1] != 0.0 or hist_out[k, 2] != 0.0:
+                    hist_out[k, 0] = 0.0
+                    hist_out[k, 1] = 0.0
+                    hist_out[k, 2] = 0.0
                 continue
             dist = math.sqrt(d2)
             delta = rs - dist  # seed 001 eq 10
-            worst = max(worst, delta / (2.0 * min(ri, rj)))  # relative to the smaller sphere
+            worst = max(worst, delta * max(invd[i], invd[j]))  # relative to the smaller sphere
             inv = 1.0 / dist
             nx = dx * inv  # seed 001 eq 12: from i towards j
             ny = dy * inv
