@@ -53,6 +53,7 @@ lint: setup
 	$(VENV)/bin/ruff check febed tests benchmarks demos
 	$(VENV)/bin/ruff format --check --quiet febed tests benchmarks demos
 	$(PY) tools/check_language.py
+	$(PY) tools/check_layers.py
 
 # The documentation site (docs/, Sphinx + MyST Markdown from Debian's packages) in docs/_build/html; warnings are
 # errors. The case-file reference and the API pages are generated from febed's code at every build.

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from febed.coarse.setup import check_case
 from febed.schema import BOUNDARY, SCHEMA, Param
 
 
@@ -357,8 +358,6 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
                     f"[gas.boundary.{tag}] wins_over = {w!r}: [gas.boundary.{w}] must set wall_law = 'no_slip' "
                     "(an inlet already shares its nodes with a wall of the porous wall law by facet)"
                 )
-    from febed.coarse.setup import check_case
-
     problems += check_case(case)
     out = case.output
     if out.keep_checkpoints < 1:

@@ -15,7 +15,7 @@ printed as one clear message and exit with status 2, before anything runs: `febe
 the pre-flight checks of `febed.preflight` (mesh tags, bed file against the case, the run's cost; `--force`
 runs a case whose estimate is refused as absurd); a run that fails (a particle escaping, ...) exits with status 3
 after writing its last good state as a checkpoint, and so does a run stopped by an output error (a full disk:
-`febed.run.OutputFailure`); a run stopped by SIGINT/SIGTERM/SIGUSR1 writes a checkpoint and exits with 128 +
+`febed.runs.lifecycle.OutputFailure`); a run stopped by SIGINT/SIGTERM/SIGUSR1 writes a checkpoint and exits with 128 +
 the signal number (130, 143, 138), also when stopped during start-up (status.json then says so); a traceback
 means a bug in febed (`febed run -v` shows the traceback of a refused value too).
 """
@@ -30,17 +30,33 @@ from pathlib import Path
 from mpi4py import MPI
 
 from febed.case import CaseError, load_case
-from febed.meshing import GEOMETRIES, PSEUDO2D_LEVELS, MeshError
+from febed.io.checkpoint import FOLDER, CheckpointError, checkpoint_identity, remove_temporaries
+from febed.io.rundir import (
+    RESOLVED_CASE,
+    OutputError,
+    _header,
+    atomic_write_text,
+    describe_run,
+    get_logger,
+    held_lock,
+    lock_output,
+    prepare_output,
+    release_output,
+    running_process,
+)
+from febed.meshing import GEOMETRIES, PSEUDO2D_LEVELS, MeshError, build_msh
 from febed.post import cli as post_cli
-from febed.restart import RESTARTABLE
+from febed.preflight import mesh_name, preflight
+from febed.restart import RESTARTABLE, case_changes, check_restartable, checkpoint_differences, read_resolved
 from febed.schema import BOUNDARY, SCHEMA, describe
 
-# run.mode -> module with `run(case, outdir, log)`; a mode whose module is absent is reported clearly.
+# run.mode -> "module:function" running a case of that mode as `function(case, outdir, log, restart=None)`,
+# imported when a run starts (the modules load DOLFINx and Numba); a mode whose module is absent is reported.
 RUNNERS = {
-    "dem": "febed.dem.driver",
-    "gas": "febed.gas.driver",
-    "cfd-dem": "febed.solver",
-    "one-way": "febed.coarse.oneway",
+    "dem": "febed.runs.dem:run",
+    "gas": "febed.runs.gas:run",
+    "cfd-dem": "febed.run:run_coupled",
+    "one-way": "febed.runs.oneway:run",
 }
 
 
@@ -123,8 +139,6 @@ def cmd_params(args) -> int:
 
 def cmd_status(args) -> int:
     """Describe run folders (`febed.io.rundir.describe_run`); status 2 if one is not a febed run folder."""
-    from febed.io.rundir import RESOLVED_CASE, describe_run
-
     for d in args.run_dirs:
         _say(describe_run(Path(d)))
     missing = [d for d in args.run_dirs if not (Path(d) / RESOLVED_CASE).is_file()]
@@ -133,8 +147,6 @@ def cmd_status(args) -> int:
 
 def cmd_check(args) -> int:
     """Validate the case, its mesh and bed and estimate the run (`febed.preflight`) without writing anything."""
-    from febed.preflight import mesh_name, preflight
-
     case = load_case(args.case, args.overrides)
     pf = preflight(case, force=args.force)
     for note in pf.notes:
@@ -148,8 +160,6 @@ def cmd_check(args) -> int:
 
 def cmd_mesh(args) -> int:
     """Build a built-in mesh (rank 0 only)."""
-    from febed.meshing import build_msh
-
     if MPI.COMM_WORLD.rank == 0:
         kw = {"extent": args.extent} if args.name == "box" else {}
         out = build_msh(args.name, args.output, level=args.level, cell=args.cell, size=args.size, **kw)
@@ -218,13 +228,10 @@ def _catch_startup_signals():
 
 
 def _run(args) -> int:
-    from febed.io.checkpoint import FOLDER, remove_temporaries
-    from febed.io.rundir import get_logger, held_lock, prepare_output, release_output
-    from febed.preflight import preflight
-    from febed.run import forget_state, record_exit
+    from febed.runs.lifecycle import forget_state, record_exit
 
     case = load_case(args.case, args.overrides)
-    module = RUNNERS[case.run.mode]
+    module, function = RUNNERS[case.run.mode].split(":")
     try:
         runner = importlib.import_module(module)
     except ModuleNotFoundError as e:
@@ -263,10 +270,10 @@ def _run(args) -> int:
             if checkpoint is None:
                 log.info(f"febed: case {case.name} ({case.path}), mode {case.run.mode}, {MPI.COMM_WORLD.size} rank(s)")
                 log.info(f"output folder: {outdir}")
-                runner.run(case, outdir, log)
+                getattr(runner, function)(case, outdir, log)
             else:
                 log.info(f"febed: case {case.name} ({case.path}), restart, {MPI.COMM_WORLD.size} rank(s)")
-                runner.run(case, outdir, log, restart=checkpoint)
+                getattr(runner, function)(case, outdir, log, restart=checkpoint)
         except BaseException as e:
             t, step = float(meta.get("time", 0.0)), int(meta.get("step", 0))
             record_exit(outdir, log, _startup_stop(e), case.run.end_time, t, step, restart=checkpoint is not None)
@@ -286,10 +293,6 @@ def _restart_target(case, restart: str, pf=None) -> tuple[Path, Path, dict]:
     particles from the pre-flight `pf`), and case changes a restart cannot take. Only then is an accepted
     change written to the resolved case.
     """
-    from febed.io.checkpoint import FOLDER, checkpoint_identity
-    from febed.io.rundir import RESOLVED_CASE, _header, atomic_write_text, lock_output, running_process
-    from febed.restart import case_changes, check_restartable, checkpoint_differences, read_resolved
-
     outdir = case.output_dir()
     if not (outdir / RESOLVED_CASE).is_file():
         raise UserError(f"--restart: {outdir} holds no febed run ({RESOLVED_CASE} missing); run without --restart")
@@ -349,9 +352,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(args) -> int:
     from febed.dem.solver import DEMFailure
-    from febed.io.checkpoint import CheckpointError
-    from febed.io.rundir import OutputError
-    from febed.run import Interrupted, StopNow
+    from febed.runs.lifecycle import Interrupted, StopNow
     from febed.solver import RunFailure
 
     commands = {

@@ -44,6 +44,9 @@ from mpi4py import MPI
 import numpy as np
 
 from febed.case import Case, CaseError, Section
+from febed.coarse import setup as coarse
+from febed.meshing import MeshError, load_case_mesh
+from febed.schema import BOUNDARY
 
 BED_RTOL = 1e-6  # bed diameters and densities match the case's to this relative tolerance
 MAX_SUBSTEPS = 100_000  # DEM sub-steps per gas step (seed cases: 10-500)
@@ -117,8 +120,6 @@ def preflight(case: Case, comm=MPI.COMM_WORLD, force: bool = False) -> Preflight
     `force` turns the refusals of an absurd estimate (sub-steps, wall time, memory) into notes; the other
     problems remain errors. Collective: every rank loads the mesh and the bed and reaches the same verdict.
     """
-    from febed.meshing import MeshError, load_case_mesh
-
     problems: list[str] = []
     with tempfile.TemporaryDirectory(prefix="febed-preflight-") as tmp:
         try:
@@ -150,10 +151,10 @@ def preflight(case: Case, comm=MPI.COMM_WORLD, force: bool = False) -> Preflight
                 problems.append(_mismatch_message(p.bed_file, bed_path, left, authoritative=True))
         problems += _outside(md, bed, p.bed_file, bed_path)
     elif case.run.mode in DEM_MODES and (p.count > 0 or p.bed_mass > 0):
-        from febed.dem.driver import _region
+        from febed.bed import insertion_region
 
         try:
-            _region(case, md, md.gdim)
+            insertion_region(case, md, md.gdim)
         except ValueError as e:
             problems.append(str(e))
     if problems:
@@ -197,8 +198,6 @@ def _boundary_tags(case: Case, md) -> list[str]:
     """Every facet tag of the mesh needs a [gas.boundary.<tag>] table once the case has any."""
     if not case.boundary:
         return []
-    from febed.schema import BOUNDARY
-
     types = ", ".join(repr(c) for c in BOUNDARY["type"].choice_names())
     return [
         f"{mesh_name(case)}: the mesh has facet tag {tag!r} but the case has no [gas.boundary.{tag}] table: add one "
@@ -211,8 +210,7 @@ def _boundary_tags(case: Case, md) -> list[str]:
 # ------------------------------------------------------------------------------------------------- bed
 def _expected(case: Case, dim: int):
     """(count or None, parcel diameter of originals' rule, parcel density) the case would insert."""
-    from febed.coarse import setup as coarse
-    from febed.dem.driver import original_count
+    from febed.bed import original_count
 
     p = case.particles
     count = None
@@ -318,7 +316,7 @@ def reconcile(case: Case, bed, dim: int) -> tuple[Case, list[str]]:
 
 def _outside(md, bed, name: str, path: Path) -> list[str]:
     """A problem if any bed particle lies outside the mesh (collective)."""
-    from febed.dem.driver import inside_mesh
+    from febed.bed import inside_mesh
 
     n = bed.n_owned
     pos = bed.pos[:n]
@@ -413,8 +411,7 @@ def estimate(case: Case, md, bed, comm=MPI.COMM_WORLD) -> tuple[Estimate, list[s
 
 def _dem_step(case: Case, dim: int, bed) -> float:
     """The DEM step T_C / dt_factor (s) of the case's contact law for the bed's (or inserted) lightest particles."""
-    from febed.coarse import setup as coarse
-    from febed.dem.driver import dem_from_case
+    from febed.bed import dem_from_case
     from febed.dem.integrate import critical_time
     from febed.dem.particles import Particles
     from febed.dem.walls import Walls

@@ -1,7 +1,7 @@
 """Checkpoint and restart of a run: what the state is, and which case changes a restart accepts.
 
-A pure-DEM run (`febed.dem.driver.DEMRun`) checkpoints the particle part below (`dem_arrays`, `load_dem`)
-with its particle-output schedule, a gas-only run (`febed.gas.driver.GasRun`) the gas part (`gas_arrays`,
+A pure-DEM run (`febed.runs.dem.DEMRun`) checkpoints the particle part below (`dem_arrays`, `load_dem`)
+with its particle-output schedule, a gas-only run (`febed.runs.gas.GasRun`) the gas part (`gas_arrays`,
 `restore_gas`) with its field-output schedule; every checkpoint records its run mode and continues only that
 mode.
 
@@ -42,7 +42,8 @@ from mpi4py import MPI
 import numpy as np
 
 from febed.io.checkpoint import CheckpointError, gather_rows, match_nodes
-from febed.schema import CHANGEABLE, flatten_keys, physics_digest
+from febed.io.rundir import RESOLVED_CASE
+from febed.schema import BOUNDARY, CHANGEABLE, SCHEMA, flatten_keys, physics_digest
 
 RESTARTABLE = ("cfd-dem", "dem", "gas")  # [run] modes whose runs write checkpoints and continue from them
 _ROWS = "p_"  # DEM state keys holding one row per particle
@@ -52,8 +53,6 @@ _HISTORY = ("saved_keys", "saved_vals", "saved_wkeys", "saved_wvals")
 # ------------------------------------------------------------------------------------------ case changes
 def _is_default(key: str, value) -> bool:
     """Whether `value` is the schema default of the case key `section.name` or `gas.boundary.<tag>.name`."""
-    from febed.schema import BOUNDARY, SCHEMA
-
     parts = key.split(".")
     if len(parts) == 4 and parts[:2] == ["gas", "boundary"]:
         param = BOUNDARY.get(parts[3])
@@ -273,6 +272,4 @@ def check_restartable(meta: dict, case) -> None:
 
 def read_resolved(outdir: Path) -> str:
     """The resolved case a run folder was started with."""
-    from febed.io.rundir import RESOLVED_CASE
-
     return (Path(outdir) / RESOLVED_CASE).read_text()

@@ -1,7 +1,7 @@
-"""Driving a coupled run: output and probe intervals, progress, the probe quantities.
+"""The coupled run (`[run] mode = "cfd-dem"`): output and probe intervals, progress, the probe quantities.
 
-`run_coupled` builds the `CoupledSolver` of a case and calls its `step()` until the end time; between
-steps it writes
+`run_coupled` builds the `CoupledRun` of a case (its `febed.solver.CoupledSolver` and writers) and calls the
+solver's `step()` until the end time; between steps it writes
 
 * probes (`probes.csv`, every `[output] probe_interval`): time, gas step, DEM sub-steps per gas step,
   particle count, particles removed at the outlet, particle kinetic energy, bed height, cross-section
@@ -16,20 +16,10 @@ steps it writes
 
 After every gas step the solver's health checks run (`CoupledSolver.check`). A failure stops the run with
 its message, writes the last state that passed the checks (kept in memory at each probe time) as a
-checkpoint, and exits non-zero. SIGINT/SIGTERM/SIGUSR1 (Ctrl-C, a batch system's time limit) finish the
-current gas step, write a checkpoint and stop (`Interrupted`); ranks agree on the step at which they stop.
-A gas step whose DEM sub-steps would take long (a tiny DEM step) is not waited for: the sub-steps ask for
-the signal every fraction of a second (`febed.dem.solver.DEM.stop_check`, agreed over the ranks) and the
-run stops with the last good state as its checkpoint (`stopped_mid_step`). A second signal stops at once
-(`StopNow`), naming the newest checkpoint there is. Under Open MPI's mpirun, SIGUSR1 is the one to send:
-mpirun forwards it to the ranks as it is, whereas on SIGTERM or SIGINT it kills them after a short grace
-that a gas step on a loaded machine can outlast.
-
-An output error (a full disk, permissions, an I/O error) while writing probes, fields, particles, a
-checkpoint or status.json stops the run on every rank (`guarded_write`, `OutputFailure`): the current
-state is written as a checkpoint if the disk takes it (the older ones are removed only after a newer one is
-complete), status.json says "failed" with the file and the error and where the newest checkpoint is, and
-`febed run` exits with status 3. The same helpers serve the pure-DEM, gas-only and one-way drivers.
+checkpoint, and exits non-zero. Stop signals, failures and output errors are handled as in every run mode
+(`febed.runs.lifecycle`): a signal finishes the current gas step (or stops its DEM sub-steps within a second
+or so), writes a checkpoint and stops (`Interrupted`); an output error stops the run with status 3
+(`OutputFailure`).
 
 Definitions:
 
@@ -43,14 +33,12 @@ Definitions:
 from __future__ import annotations
 
 import math
-import os
-import signal
-import sys
 import time
 from pathlib import Path
 
 from mpi4py import MPI
 
+import dolfinx.fem
 import numpy as np
 
 from febed import restart as rs
@@ -59,343 +47,27 @@ from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.weights import compute_weights
 from febed.dem.solver import DEMFailure, StopRequested
-from febed.io.checkpoint import FOLDER, CheckpointError, write_checkpoint
+from febed.io.checkpoint import FOLDER, load_checkpoint, write_checkpoint
+from febed.io.fields import FieldWriter
+from febed.io.particles import ParticleWriter
 from febed.io.probes import ProbeFile
 from febed.io.progress import Progress, RateMeter
-from febed.io.rundir import STATUS_FILE, write_status
+from febed.meshing import load_case_mesh
+from febed.parallel.exchange import balance_line
+from febed.runs.lifecycle import (
+    OutputFailure,
+    after_step,
+    catch_stop_signals,
+    checkpoint_or_fail,
+    close_after_error,
+    close_files,
+    guarded_write,
+    record_failure,
+    run_to_end,
+    stopped_mid_step,
+    write_run_status,
+)
 from febed.solver import RunFailure, build_solver
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # finish the step, checkpoint, stop
-
-
-class Interrupted(Exception):
-    """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
-
-    def __init__(self, signum: int, message: str):
-        super().__init__(message)
-        self.signum = signum
-
-
-class StopNow(KeyboardInterrupt):
-    """A stop signal that cannot wait for the end of a step: during start-up, or a second one; `signum` is it."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-class OutputFailure(RunFailure):
-    """The run's output could not be written (a full disk, permissions, an I/O error).
-
-    The message names the file and the operating system's error. `checkpoint`: it was a checkpoint that failed.
-    """
-
-    def __init__(self, message: str, checkpoint: bool = False):
-        super().__init__(message)
-        self.checkpoint = checkpoint
-
-
-def agree(comm, sig: int, *due: bool) -> tuple:
-    """(largest signal number over the ranks, then rank 0's value of each `due` flag) on every rank (collective).
-
-    Decisions taken from a rank's own wall clock must be rank 0's: the ranks' clocks disagree, and a rank
-    acting on its own would make collective calls its partners never make (a hang).
-    """
-    if comm.size == 1:
-        return (sig, *due)
-    flags = np.array([sig, *(due if comm.rank == 0 else [False] * len(due))], dtype=np.int64)
-    comm.Allreduce(MPI.IN_PLACE, flags, op=MPI.MAX)
-    return (int(flags[0]), *(bool(f) for f in flags[1:]))
-
-
-# ------------------------------------------------------------------------------------------ output errors
-def os_error_text(error: OSError, path) -> str:
-    """'cannot write FILE: [Errno 28] No space left on device' (the error's own file name if it has one)."""
-    name = error.filename or path
-    what = f"[Errno {error.errno}] {error.strerror}" if error.errno and error.strerror else str(error)
-    return f"cannot write {name}: {what}"
-
-
-def guarded_write(comm, path, write, /, *args, **kwargs):
-    """`write(*args, **kwargs)` on every rank, its output errors raised as OutputFailure on every rank (collective).
-
-    An OSError (ENOSPC, EACCES, EIO, ...), or the RuntimeError of DOLFINx's XDMF/HDF5 writer, on any rank
-    becomes one OutputFailure naming the file (the error's own, else `path`) and the error; the ranks agree
-    through one allgather (none on one process). Returns what `write` returns.
-    """
-    err = result = None
-    try:
-        result = write(*args, **kwargs)
-    except OSError as e:
-        err = os_error_text(e, path)
-    except RuntimeError as e:
-        if type(e) is not RuntimeError:  # febed's own errors (RunFailure, CheckpointError, ...) are subclasses
-            raise
-        err = f"cannot write {path}: {e}"
-    if comm is not None and comm.size > 1:
-        err = next((m for m in comm.allgather(err) if m), None)
-    if err:
-        raise OutputFailure(err)
-    return result
-
-
-def close_files(comm, *files) -> None:
-    """Close each of `files` (each has `path` and `close()`; None skipped) and then raise the first OutputFailure."""
-    first = None
-    for f in files:
-        if f is None:
-            continue
-        try:
-            guarded_write(comm, f.path, f.close)
-        except OutputFailure as e:
-            first = first or e
-    if first is not None:
-        raise first
-
-
-def checkpoint_or_fail(write, *args):
-    """`write_checkpoint(*args)` (or another `write` raising CheckpointError on every rank) as OutputFailure."""
-    try:
-        return write(*args)
-    except CheckpointError as e:
-        raise OutputFailure(str(e), checkpoint=True) from None
-
-
-# -------------------------------------------------------------------------------------------------- status
-_ENDED: dict[str, str] = {}  # run folder -> the last state this process wrote to its status.json
-
-
-def write_run_status(outdir, state: str, t: float, end: float, step: int, message: str = "", comm=MPI.COMM_WORLD,
-                     collective: bool = True) -> None:  # fmt: skip
-    """Write the run's `status.json` (`febed.io.rundir.write_status`, rank 0).
-
-    `collective`: every rank calls, and a failed write raises OutputFailure on every rank. Otherwise (the
-    recording of a failure, possibly on one rank only) a failed write is said on stderr and the run goes on
-    to stop with its own error.
-    """
-    _ENDED[os.path.abspath(outdir)] = state
-    path = Path(outdir) / STATUS_FILE
-    if collective:
-        guarded_write(comm, path, write_status, outdir, state, t, end, step, message, comm)
-        return
-    try:
-        write_status(outdir, state, t, end, step, message, comm)
-    except OSError as e:
-        print(f"febed: {os_error_text(e, path)}: it could not record the run as {state}", file=sys.stderr, flush=True)
-
-
-def last_state(outdir) -> str | None:
-    """The state this process last wrote to the `status.json` of `outdir` (None: none since `forget_state`)."""
-    return _ENDED.get(os.path.abspath(outdir))
-
-
-def forget_state(outdir) -> None:
-    """Forget what this process wrote to the `status.json` of `outdir` (a new run in the same process)."""
-    _ENDED.pop(os.path.abspath(outdir), None)
-
-
-def newest_checkpoint(outdir) -> str:
-    """'the newest checkpoint is .../checkpoint_<step>.npz (t = ... s)', or 'there is no checkpoint' (this rank)."""
-    from febed.io.checkpoint import list_checkpoints, read_meta
-
-    for path in reversed(list_checkpoints(Path(outdir) / FOLDER)):
-        try:
-            t = read_meta(path)["time"]
-        except (CheckpointError, KeyError):
-            continue
-        return f"the newest checkpoint is {path} (t = {t:.6g} s)"
-    return "there is no checkpoint"
-
-
-# ------------------------------------------------------------------------------------ the end of a run
-def after_step(run, t: float, checkpoint_due: bool) -> bool:
-    """The end of a step of any run (coupled, pure DEM, gas only): returns whether a progress line is due.
-
-    Agrees with the other ranks on a stop signal and on the wall-clock triggers (`agree`: rank 0's clock), writes
-    a checkpoint when one is due (a signal, `[output] checkpoint_wall_interval`, or `checkpoint_due`: the
-    simulated-time interval), and after a signal ends the progress line, sets the status to interrupted and
-    raises `Interrupted`. When a progress line is due, status.json is rewritten with the current time. `run`
-    has comm, case, display, `_signal`, `_last_checkpoint`, `_last_progress`, `checkpoint()` and `status()`
-    (collective).
-    """
-    o = run.case.output
-    now = time.perf_counter()
-    sig, wall_due, show = agree(
-        run.comm, run._signal, now - run._last_checkpoint >= o.checkpoint_wall_interval,
-        now - run._last_progress >= o.progress_interval,
-    )  # fmt: skip
-    if sig or wall_due or checkpoint_due:
-        run.checkpoint()
-    if show and not sig:
-        run.status("running")  # status.json follows the progress line: its time and step are recent
-    if sig:
-        name = signal.Signals(sig).name
-        run.display.end()
-        run.status("interrupted", f"stopped by {name}")
-        raise Interrupted(sig, f"stopped by {name} at t = {t:.6g} s after a checkpoint; continue with --restart")
-    return show
-
-
-def run_to_end(run, end: float) -> None:
-    """Advance `run` (coupled, pure DEM or gas only) to `end`, then write the final checkpoint and status.
-
-    The stop signals are caught meanwhile (`catch_signals`). However the run ends, its files are closed and
-    the handlers restored; an error closing them after another error is logged and does not hide the first.
-    An output error (`OutputFailure`) is recorded by `record_output_failure`; a second stop signal
-    (`StopNow`) stops at once and becomes `Interrupted` (collective).
-    """
-    restore_signals = run.catch_signals()
-    closed, last_output = False, True
-    try:
-        run.advance_to(end)
-        run.checkpoint()
-        run.status("finished")
-        run.close()
-        closed = True
-    except OutputFailure as e:
-        last_output = False
-        record_output_failure(run, e)
-        raise
-    except KeyboardInterrupt as e:
-        last_output = False
-        raise stopped_at_once(run, e) from None
-    finally:
-        try:
-            if not closed:
-                close_after_error(run, last_output and not getattr(run, "mid_step", False))
-        finally:
-            restore_signals()
-
-
-def close_after_error(run, last_output: bool) -> None:
-    """Close a run that stopped on an error or signal, with its last output if `last_output`; errors are logged."""
-    if getattr(run, "broken", False):  # a rank failed alone: collective calls would hang
-        return
-    try:
-        run.close(last_output)
-    except (RunFailure, OSError, RuntimeError) as e:
-        run.log.warning(f"could not write the last output while stopping: {e}")
-
-
-def write_good_state(run) -> str:
-    """Write the last good state (`run.good`) as a checkpoint unless this run wrote a newer one (collective).
-
-    Returns where that state is, as a clause of a message.
-    """
-    t_good = run.good[1]["time"]
-    written = getattr(run, "checkpoint_written", None)  # (time, path) of this run's newest checkpoint
-    if written is not None and written[0] >= t_good:
-        return f"last good state (t = {written[0]:.6g} s) in {written[1]}"
-    try:
-        path = run.checkpoint(run.good)
-        return f"last good state (t = {t_good:.6g} s) in {path}"
-    except (RunFailure, CheckpointError) as e:
-        return f"could not write the last good state: {e}"
-
-
-def record_failure(run, error, collective: bool = True) -> None:
-    """Record a failed run of any mode: the last good state, the status and the log.
-
-    Ends the progress line, writes the last good state (`run.good`) as a checkpoint if `collective` (every rank
-    takes part), sets the status to failed and logs the error with where that state is.
-    """
-    run.display.end()
-    where = f"; {write_good_state(run)}" if run.good is not None and collective else ""
-    run.status("failed", f"{error}{where}", collective=False)
-    run.log.error(f"run failed: {error}{where}")
-
-
-def record_output_failure(run, error: OutputFailure) -> None:
-    """Record a run stopped by an output error: a checkpoint of the state if one can be written, status, log.
-
-    Unless it was a checkpoint that failed, the current state (whole steps, passed the checks) is written as a
-    checkpoint; either way the message says where the newest checkpoint is. The previous checkpoints are never
-    removed before a newer one is complete (`febed.io.checkpoint.write_checkpoint`). Collective.
-    """
-    run.display.end()
-    run.output_failed = True
-    fix = "free disk space" if "No space left" in str(error) else "fix that"
-    saved = None
-    if not error.checkpoint:
-        try:
-            path = run.checkpoint()
-            saved = f"the state at t = {run.checkpoint_written[0]:.6g} s is saved in {path}"
-        except RunFailure:  # the same cause, most likely: the newest checkpoint is the one to continue from
-            pass
-    if saved:
-        where = f"; {saved}: {fix}, then continue with --restart"
-    else:
-        newest = newest_checkpoint(run.outdir)
-        again = "continue from it with --restart" if newest.startswith("the newest") else "run it again (--overwrite)"
-        either = "" if error.checkpoint else "a checkpoint of this moment could not be written either; "
-        where = f"; {either}{newest}: {fix}, then {again}"
-    message = f"{error}{where}"
-    run.status("failed", message, collective=False)
-    if run.comm.rank == 0:  # every rank knows it: said once
-        run.log.error(f"run failed: {message}")
-    error.args = (message,)
-
-
-def stopped_mid_step(run, what: str) -> Interrupted:
-    """A stop signal came in the middle of a step (`what`): write the last good state, status; the Interrupted.
-
-    The state in memory is half-way through a step, so the last complete state that passed the checks
-    (`run.good`) is what a restart continues from. Collective (the ranks agreed on the stop).
-    """
-    run.mid_step = True
-    run.display.end()
-    sig = run._signal or signal.SIGTERM
-    name = signal.Signals(sig).name
-    where = write_good_state(run)
-    message = f"stopped by {name} in the middle of {what}; {where}; continue with --restart"
-    run.status("interrupted", message, collective=False)
-    if run.comm.rank == 0:
-        run.log.warning(message)
-    return Interrupted(sig, message)
-
-
-def stopped_at_once(run, error: KeyboardInterrupt) -> Interrupted:
-    """A second stop signal (or Ctrl-C) stopped the run at once: status, log and the Interrupted (this rank only).
-
-    No checkpoint is written for the moment it came; the message names the newest checkpoint there is.
-    """
-    if run.comm.size > 1:
-        run.broken = True  # the other ranks may not have stopped: no collective calls
-    run.display.end()
-    sig = getattr(error, "signum", signal.SIGINT)
-    name = signal.Signals(sig).name
-    newest = newest_checkpoint(run.outdir)
-    then = "; continue from it with --restart" if newest.startswith("the newest") else ": start the run again"
-    message = f"stopped at once by a second {name}, without a checkpoint of this moment; {newest}{then}"
-    run.status("interrupted", message, collective=False)
-    run.log.warning(message)
-    return Interrupted(sig, message)
-
-
-def record_exit(outdir, log, error: BaseException, end: float, t: float = 0.0, step: int = 0,
-                restart: bool = False) -> None:  # fmt: skip
-    """Record in status.json and the log an error that ended `febed run` before its run recorded anything.
-
-    Errors met during start-up (building the mesh, the bed, the solver; opening the output files) or a stop
-    signal then (a KeyboardInterrupt: Ctrl-C, or another stop signal carrying `signum`) would otherwise leave
-    no status.json (`febed status`: "unknown") and nothing in febed.log. Nothing is done if the run already
-    recorded how it ended (rank 0 writes).
-    """
-    if last_state(outdir) not in (None, "running"):
-        return
-    started = last_state(outdir) == "running"
-    if isinstance(error, KeyboardInterrupt):
-        name = signal.Signals(getattr(error, "signum", signal.SIGINT)).name
-        when = "before the run's end" if started else "during start-up, before the first step"
-        then = "its checkpoints are unchanged: continue with --restart" if restart else "run it again (--overwrite)"
-        state, message = "interrupted", f"stopped by {name} {when}; {then}"
-        log.warning(message)
-    else:
-        state = "failed"
-        known = isinstance(error, (RunFailure, ValueError, OSError, RuntimeError, MemoryError))
-        message = str(error) if known and str(error) else f"{type(error).__name__}: {error}"
-        log.error(f"run failed: {message}")
-    write_run_status(outdir, state, t, end, step, message, collective=False)
 
 
 class SectionAverage:
@@ -454,8 +126,6 @@ class CoupledRun:
             md: an already loaded mesh (`febed.load_case_mesh`); None loads the case's.
             restart: (path, arrays, meta) of a checkpoint (`febed.io.checkpoint.load_checkpoint`) to continue.
         """
-        from febed.meshing import load_case_mesh
-
         self.case = case
         self.outdir = Path(outdir)
         self.log = log
@@ -515,11 +185,6 @@ class CoupledRun:
         self._meter = RateMeter(s.t)
 
     def _writers(self) -> None:
-        import dolfinx.fem
-
-        from febed.io.fields import FieldWriter
-        from febed.io.particles import ParticleWriter
-
         s = self.solver
         self.alpha = dolfinx.fem.Function(s.gas.Q)
         funcs = dict(s.gas.functions())
@@ -640,8 +305,6 @@ class CoupledRun:
     def _log_balance(self) -> None:
         if self.comm.size == 1:
             return
-        from febed.parallel.exchange import balance_line
-
         dem = self.solver.dem
         self.log.info(balance_line(self.comm, dem.particles.n_owned, dem.pairs.size))
 
@@ -745,44 +408,8 @@ class CoupledRun:
 
     # ---------------------------------------------------------------------------------------- signals
     def catch_signals(self):
-        """Handle STOP_SIGNALS by stopping after the current gas step; returns a function restoring the handlers."""
+        """Handle the stop signals by stopping after the current gas step; returns the restorer."""
         return catch_stop_signals(self, "this gas step", self.solver.dem)
-
-
-def catch_stop_signals(run, after: str, dem=None):
-    """Install STOP_SIGNALS handlers that set `run._signal` (logged to `run.log`: "stopping after `after`").
-
-    A second signal raises `StopNow` (stop at once). With a `dem`, its long sub-step loops ask for the signal
-    every fraction of a second (`DEM.stop_check`, agreed over the ranks) and stop early (`StopRequested`).
-    Returns a function restoring the previous handlers (and removing the DEM's check); outside the main
-    thread (no handlers possible) a no-op.
-    """
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-
-    def handler(signum, frame):
-        if run._signal:  # a second Ctrl-C: stop now
-            raise StopNow(signum)
-        run._signal = signum
-        run.log.warning(f"{signal.Signals(signum).name} received: stopping after {after}")
-
-    def stop_check() -> bool:
-        run._signal = agree(run.comm, run._signal)[0]
-        return bool(run._signal)
-
-    old = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
-    if dem is not None:
-        dem.stop_check = stop_check
-
-    def restore() -> None:
-        for k, v in old.items():
-            signal.signal(k, v)
-        if dem is not None:
-            dem.stop_check = None
-
-    return restore
 
 
 def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
@@ -801,8 +428,6 @@ def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
     Raises:
         RunFailure: the run could not go on (after writing its last good state and a failed status).
     """
-    from febed.io.checkpoint import load_checkpoint
-
     ckpt = None
     if restart is not None:
         ckpt = load_checkpoint(Path(restart), comm)

@@ -16,7 +16,7 @@ One gas step of size Δt (time-staggered; docs/theory.md, data flow):
    floor), K_i, K_i v̄_i.
 3. **Gas** (`febed.gas.vans.VANSSolver.step`): predictor with −K_i(u_i − v̄_i) implicit, pressure Poisson
    with the ∂ε/∂t source, correction.
-4. **Probes and output** on their own intervals (`febed.run.Run`).
+4. **Probes and output** on their own intervals (`febed.run.CoupledRun`).
 
 Momentum exchange (seed 001 eq 29): a particle receives the drag K_p (u@p − v_p) and the pressure-gradient
 force F_P = −V_p ∇p@p; the gas receives minus both, −Σ_p ω_{p,i} K_p (u_i − v_p) implicitly through K_i and
@@ -37,11 +37,15 @@ from mpi4py import MPI
 import numpy as np
 from numba import njit
 
+from febed.bed import build_dem
 from febed.coarse import setup as coarse
 from febed.coupling.exchange import Coupler
 from febed.coupling.locate import OUTSIDE_DOMAIN, OUTSIDE_LOCAL
 from febed.coupling.mesh_arrays import extract_mesh_arrays
 from febed.gas.pressure import PressureSolveError
+from febed.gas.vans import VANSSolver
+from febed.parallel.exchange import ParticleExchange
+from febed.parallel.partition import cell_owners
 
 FLUID = "fluid"  # auxiliary particle array: K_p, F_D + F_P, v_p at the step start, F_P, valid flag
 FLUID_COLUMNS = 11
@@ -131,9 +135,6 @@ class CoupledSolver:
             cp.pressure_gradient,
         )  # fmt: skip
         if md.comm.size > 1:  # particles live with the mesh partition (seed 001 sec 2.5)
-            from febed.parallel.exchange import ParticleExchange
-            from febed.parallel.partition import cell_owners
-
             dem.attach_exchange(ParticleExchange(self.ma, cell_owners(md.mesh)), distribute=True)
         self.fixed = case.particles.fixed
         self._located_now = False  # the coupler's cells and weights match the particles' current positions
@@ -454,16 +455,6 @@ def build_solver(case, md, log) -> CoupledSolver:
     Returns:
         A `CoupledSolver` at t = 0 (or the bed's state): `step()` advances one gas step.
     """
-    from febed.dem.driver import build_dem
-    from febed.gas.vans import VANSSolver
-
     dem = build_dem(case, md, log)
     gas = VANSSolver.from_case(case, md)
     return CoupledSolver(case, md, dem, gas, log)
-
-
-def run(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
-    """Run a coupled case (`[run] mode = "cfd-dem"`) to its end time, or continue it from a checkpoint."""
-    from febed.run import run_coupled
-
-    return run_coupled(case, outdir, log, comm, restart=restart)

@@ -54,6 +54,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from febed.case import CaseError, load_case
+from febed.post.collect import Comparison, compare_members
+from febed.post.rundata import list_snapshots, read_case, read_status
+from febed.post.series import read_series
+
 STATES = ("new", "live", "running", "interrupted", "finished", "failed")
 _STUDY_KEYS = {"base", "name", "directory", "combine", "set", "ranks", "mpirun", "window"}
 
@@ -117,8 +122,6 @@ def _label(key: str, v) -> str:
 
 def load_study(path: str | Path) -> Study:
     """Read and check a study file; every member's case is validated (febed.case) before anything runs."""
-    from febed.case import CaseError, load_case
-
     path = Path(path).expanduser().resolve()
     if not path.is_file():
         raise ValueError(f"study file {path} not found")
@@ -209,19 +212,7 @@ def load_study(path: str | Path) -> Study:
     )
 
 
-def read_status(run_dir: Path) -> dict | None:
-    """A run folder's status.json as a dict, None if absent or unreadable."""
-    f = Path(run_dir) / "status.json"
-    try:
-        return json.loads(f.read_text())
-    except (OSError, ValueError):
-        return None
-
-
 def _last_output_time(run_dir: Path) -> float:
-    from febed.post.rundata import list_snapshots
-    from febed.post.series import read_series
-
     t = read_series(run_dir).get("time")
     last = float(t[-1]) if t is not None and t.size else -math.inf
     try:
@@ -242,13 +233,11 @@ def member_state(m: Member) -> str:
     if st is not None:
         s = st.get("state")
         if s == "running":
-            from febed.io.rundir import running_process
+            from febed.io.rundir import running_process  # loads mpi4py (MPI starts)
 
             return "live" if running_process(d) is not None else "running"
         if s in ("interrupted", "finished", "failed"):
             return s
-    from febed.post.rundata import read_case
-
     try:
         case = read_case(d)
         end = float(case["run"]["end_time"])
@@ -265,8 +254,7 @@ def resume_flags(m: Member, state: str) -> tuple[bool, bool]:
     An unfinished run of a mode without checkpoints (not in `febed.restart.RESTARTABLE`, e.g. one-way) starts
     again from scratch.
     """
-    from febed.post.rundata import read_case
-    from febed.restart import RESTARTABLE
+    from febed.restart import RESTARTABLE  # loads mpi4py (MPI starts)
 
     if state not in ("running", "interrupted"):
         return False, state == "failed"
@@ -341,18 +329,6 @@ def _write_manifest(study: Study, states=None) -> None:
     (study.directory / "study.json").write_text(json.dumps(doc, indent=1, default=str) + "\n")
 
 
-@dataclass
-class Comparison:
-    """The collected comparison: one row per member, the CSV path and the figures written."""
-
-    rows: list[dict]
-    csv: Path
-    figures: list[Path]
-    profiles: dict[str, tuple] = field(default_factory=dict)
-
-
 def collect(study: Study, fields: bool = True, height: float = 0.092, out: Path | None = None) -> Comparison:
     """Compare the members' results (see the module docstring); writes `<directory>/comparison/`."""
-    from febed.post.collect import compare_members
-
-    return compare_members(study, fields=fields, height=height, out=out)
+    return compare_members(study, member_states(study), fields=fields, height=height, out=out)

@@ -218,8 +218,8 @@ def test_every_mode_stops_cleanly_on_an_output_error(tmp_path, capsys, monkeypat
 
     import dolfinx.io
 
-    from febed.coarse import oneway
     from febed.io import particles
+    from febed.runs import oneway
 
     case = tmp_path / "case.toml"
     case.write_text(MODES[mode])
@@ -262,7 +262,8 @@ def test_an_output_error_on_rank_0_alone_stops_every_rank(mpi_tmp_path, monkeypa
     from febed.case import load_case
     from febed.io.probes import ProbeFile
     from febed.io.rundir import get_logger
-    from febed.run import CoupledRun, OutputFailure, run_to_end
+    from febed.run import CoupledRun
+    from febed.runs.lifecycle import OutputFailure, run_to_end
 
     comm = MPI.COMM_WORLD
     out = mpi_tmp_path / "run"

@@ -105,7 +105,7 @@ def test_sigterm_during_start_up_exits_with_a_status_and_a_message(tmp_path, cap
 
 
 def test_a_second_stop_signal_names_the_checkpoint_that_was_written(tmp_path, capsys, monkeypatch):
-    from febed.run import StopNow
+    from febed.runs.lifecycle import StopNow
     from febed.solver import CoupledSolver
 
     out = tmp_path / "run"
@@ -187,8 +187,8 @@ def test_a_long_dem_advance_stops_at_the_same_whole_step_on_every_rank(mpi_tmp_p
     after step 30; the DEM's clock counts exactly the steps made, and it goes on from there."""
     from febed.case import load_case
     from febed.dem import solver
-    from febed.dem.driver import DEMRun
-    from febed.run import agree
+    from febed.runs.dem import DEMRun
+    from febed.runs.lifecycle import agree
 
     comm = MPI.COMM_WORLD
     case = load_case(data={**BOX, "output": {"directory": str(mpi_tmp_path)}})

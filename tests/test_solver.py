@@ -9,8 +9,8 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
+from febed.bed import walls_from_mesh
 from febed.case import _merge, load_case
-from febed.dem.driver import walls_from_mesh
 from febed.dem.solver import DEM
 from febed.gas.vans import VANSSolver
 from febed.meshing import load_case_mesh

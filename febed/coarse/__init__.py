@@ -5,6 +5,6 @@ particles in a prescribed gas (seed 003 sec 4-5).
 
 Public entry points: `tm_dem_params`, `tm_contact_params`, `tm_parcels`, `tm_contact_time`,
 `use_group_contacts` (febed.coarse.tm);
-`scg_density` (febed.coarse.scg); `OneWay`, `run_oneway`, `OneWayCase` (febed.coarse.oneway); `GroupDynamics`,
-`equivalent_diameter` (febed.coarse.pcpm).
+`scg_density` (febed.coarse.scg); `OneWay`, `OneWayCase` (febed.coarse.oneway; a one-way case runs through
+`febed.runs.oneway`); `GroupDynamics`, `equivalent_diameter` (febed.coarse.pcpm).
 """

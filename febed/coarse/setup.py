@@ -19,6 +19,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from febed.coarse.scg import scg_count, scg_particles
+
 
 @dataclass
 class ParcelSpec:
@@ -65,8 +67,6 @@ def parcels(case, count_orig: int, dim: int = 3) -> ParcelSpec:
         count = parcel_count(count_orig, cg.ratio) if dim == 3 else max(1, round(count_orig / cg.ratio**2))
         return ParcelSpec(d, p.density, count, n)
     if cg.model == "scg":
-        from febed.coarse.scg import scg_count, scg_particles
-
         d, rho = scg_particles(p.diameter, p.density, cg.ratio)
         return ParcelSpec(d, rho, scg_count(count_orig, cg.ratio), 1)
     return ParcelSpec(p.diameter, p.density, count_orig, 1)

@@ -39,7 +39,7 @@ import math
 
 import numpy as np
 
-from febed.dem.contact import damping_ratio
+from febed.dem.contact import GroupParams, LinearParams, damping_ratio
 
 DAMPING_MODES = ("force", "restitution")
 
@@ -140,8 +140,6 @@ def use_group_contacts(dem, d_orig: float, rho: float) -> None:
     changes: the law reads each pair's ratio from the effective mass it already receives. The DEM step follows
     the same scaling (`febed.dem.integrate.critical_time`: the lightest pair present with its k_n l^2).
     """
-    from febed.dem.contact import GroupParams, LinearParams
-
     if not isinstance(dem.pp, LinearParams):
         raise ValueError("use_group_contacts: contact.model must be 'linear' (the history law is not scaled per pair)")
     if not (d_orig > 0 and rho > 0):

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from febed.dem.particles import Particles
+from febed.dem.particles import GID_LIMIT, Particles
 
 
 def count_from_mass(bed_mass: float, diameter: float, density: float) -> int:
@@ -265,7 +265,5 @@ def _check_bed_arrays(path: Path, data: dict[str, np.ndarray]) -> None:
         raise BedError(f"bed file {path}: n_orig must be >= 1 (the original particles each one stands for)")
     if "gid" in data:
         gid = data["gid"]
-        from febed.dem.particles import GID_LIMIT
-
         if np.any(gid < 0) or np.any(gid >= GID_LIMIT) or np.unique(gid).size != n:
             raise BedError(f"bed file {path}: gid must be unique integers in [0, {GID_LIMIT})")

@@ -38,6 +38,9 @@ from pathlib import Path
 
 from mpi4py import MPI
 
+from febed import __version__
+from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta
+
 RESOLVED_CASE = "case.resolved.toml"
 LOG_FILE = "febed.log"
 STATUS_FILE = "status.json"
@@ -418,8 +421,6 @@ def release_output(folder: Path) -> None:
 
 
 def _header(case) -> str:
-    from febed import __version__
-
     src = f" from {case.path}" if case.path else ""
     return f"# resolved by febed {__version__}{src}: every parameter, defaults filled in\n\n"
 
@@ -494,8 +495,6 @@ def _last_progress(outdir: Path) -> tuple[str, str] | None:
 
 def describe_run(outdir: Path) -> str:
     """A few lines on a run folder: its state (and whether its process is alive), progress, newest checkpoint."""
-    from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta
-
     outdir = Path(outdir)
     if not (outdir / RESOLVED_CASE).is_file():
         return f"{outdir}: not a febed run folder (no {RESOLVED_CASE})"

@@ -13,8 +13,14 @@ Bad input raises ValueError (printed by febed/cli.py).
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from pathlib import Path
+
+from febed.post.collect import compare_runs
+from febed.post.grid import BUBBLE_ALPHA
+from febed.post.report import post_run
+from febed.study import collect, job_lines, load_study, member_states, resume_flags, run_study
 
 
 def add_post_parser(subparsers) -> argparse.ArgumentParser:
@@ -40,8 +46,6 @@ def add_post_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--heights", type=float, nargs="+", default=[0.092], metavar="Z/H", help="profile heights z/H (0.092)"
     )
-    from febed.post.grid import BUBBLE_ALPHA
-
     p.add_argument(
         "--bubble-alpha",
         type=float,
@@ -67,8 +71,6 @@ def add_post_parser(subparsers) -> argparse.ArgumentParser:
 def cmd_post(args) -> int:
     """Run `febed post` with parsed arguments; prints what it wrote and the main numbers."""
     from mpi4py import MPI
-
-    from febed.post.report import post_run
 
     if MPI.COMM_WORLD.rank != 0:  # started under mpirun: one process does the work
         return 0
@@ -134,10 +136,6 @@ def add_study_parser(subparsers) -> argparse.ArgumentParser:
 
 def cmd_study(args) -> int:
     """Run `febed study` with parsed arguments; 0 if every member finished, 1 otherwise."""
-    import shlex
-
-    from febed.study import collect, job_lines, load_study, member_states, resume_flags, run_study
-
     study = load_study(args.study)
     if args.list:
         for m, state in member_states(study):
@@ -185,8 +183,6 @@ def add_compare_parser(subparsers) -> argparse.ArgumentParser:
 def cmd_compare(args) -> int:
     """Run `febed compare` with parsed arguments; prints the table's main columns and the files written."""
     from mpi4py import MPI
-
-    from febed.post.collect import compare_runs
 
     if MPI.COMM_WORLD.rank != 0:
         return 0

@@ -1,6 +1,7 @@
 """Comparisons of runs in one table and a few figures: a study's members or any run folders.
 
-`compare_members` serves `febed study` (`febed.study.collect`), `compare_runs` serves `febed compare`.
+`compare_members` serves `febed study` (`febed.study.collect` hands it the members and their states),
+`compare_runs` serves `febed compare`.
 
 Per run, over its averaging window (default: the last half of that run's output):
 
@@ -20,11 +21,14 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from febed.post.rundata import list_snapshots, run_info, select_window
+from febed.post.depth import DepthProfile, default_depth_bins
+from febed.post.fields import average_fields, default_bins, make_grid
+from febed.post.rundata import list_snapshots, read_status, run_info, select_window
 from febed.post.series import read_series, summarize, weight_per_area
 from febed.post.support import bottom_support
 
@@ -34,6 +38,16 @@ NUMBERS = (
     "bed_flux_centre/rhoUf", "bed_flux_walls/rhoUf", "bubble_fraction", "q2_bed/Uf2", "bottom_support/W",
     "depth_spread/Uf", "depth_asymmetry",
 )  # fmt: skip
+
+
+@dataclass
+class Comparison:
+    """The collected comparison: one row per run, the CSV path and the figures written."""
+
+    rows: list[dict]
+    csv: Path
+    figures: list[Path]
+    profiles: dict[str, tuple] = field(default_factory=dict)
 
 
 def _empty_numbers() -> dict:
@@ -46,8 +60,6 @@ def run_row(directory, window=None, fields: bool = True, height: float = 0.092) 
 
     `window` (s): the averaging window, default the last half of the run's output so far.
     """
-    from febed.study import read_status
-
     nan = math.nan
     row = _empty_numbers()
     try:
@@ -74,9 +86,6 @@ def run_row(directory, window=None, fields: bool = True, height: float = 0.092) 
     avg = None
     depth = None
     if fields and snaps:
-        from febed.post.depth import DepthProfile, default_depth_bins
-        from febed.post.fields import average_fields, default_bins, make_grid
-
         grid = make_grid(info, default_bins(directory, info))
         if info.dim == 3:
             depth = DepthProfile(info, grid, default_depth_bins(directory, info))
@@ -223,16 +232,22 @@ def _write_rows(rows: list[dict], path: Path) -> None:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
 
 
-def compare_members(study, fields: bool = True, height: float = 0.092, out: Path | None = None):
-    """Collect every member's numbers into `out` (default <study directory>/comparison): CSV + figures."""
-    from febed.study import Comparison, member_states
+def compare_members(study, states, fields: bool = True, height: float = 0.092, out: Path | None = None) -> Comparison:
+    """Collect every member's numbers into `out` (default <study directory>/comparison): CSV + figures.
 
+    Args:
+        study: a `febed.study.Study`.
+        states: (member, state) of each of its members (`febed.study.member_states`).
+        fields: also average the particle output (else the probe series only).
+        height: z/H of the solid flux profile.
+        out: the output folder.
+    """
     if not 0.0 <= height <= 1.0:
         raise ValueError(f"height: expected z/H in [0, 1], got {height}")
     out = Path(out) if out is not None else study.directory / "comparison"
     out.mkdir(parents=True, exist_ok=True)
     rows, profiles = [], {}
-    for m, state in member_states(study):
+    for m, state in states:
         row, prof = _member_row(study, m, state, fields, height)
         rows.append(row)
         if prof is not None:
@@ -260,8 +275,6 @@ def compare_runs(directories, labels=None, windows=None, fields: bool = True, he
     and figures: each quantity against the runs (`comparison_runs.png`) and the profiles on one plot.
     `windows`: None (the last half of each run), one (t0, t1) for all, or one per run.
     """
-    from febed.study import Comparison
-
     directories = [Path(d) for d in directories]
     if not directories:
         raise ValueError("give at least one run folder to compare")

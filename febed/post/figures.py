@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from febed.post.depth import BANDS
+
 
 def _plt():
     import matplotlib
@@ -132,8 +134,6 @@ def snapshot_maps(grid, info, frames: list[tuple[float, np.ndarray]], path: Path
 
 def depth_plot(depth, name: str, path: Path) -> Path:
     """The vertical particle velocity across the depth at one height, per band of the width (seed 001 Fig 11)."""
-    from febed.post.depth import BANDS
-
     plt = _plt()
     fig, ax = plt.subplots(figsize=(4.5, 3.5))
     labels = {"all": "whole width", "centre": "central third", "walls": "outer 15 % (side walls)"}

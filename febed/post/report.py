@@ -34,8 +34,9 @@ import numpy as np
 
 from febed.post.depth import BANDS, DEPTH_HEIGHT, DepthProfile, default_depth_bins
 from febed.post.fields import AveragedFields, average_fields, default_bins, make_grid
-from febed.post.grid import BUBBLE_ALPHA
-from febed.post.rundata import list_snapshots, run_info
+from febed.post.figures import depth_plot, field_maps, profile_plot, series_plot, snapshot_maps
+from febed.post.grid import BUBBLE_ALPHA, bin_sums
+from febed.post.rundata import list_snapshots, read_snapshot, run_info, select_window
 from febed.post.series import SeriesSummary, read_series, summarize, weight_per_area
 from febed.post.support import bottom_support
 
@@ -187,8 +188,6 @@ def post_run(
             files.append(_write_csv(out / f"{name}.csv", header, ([float(v) for v in r] for r in rows)))
             values[f"{name}_flux_centre/rhoUf"] = float(np.interp(0.5, xl, fz / s["rhoU_f"]))
             if figures:
-                from febed.post.figures import profile_plot
-
                 files.append(
                     profile_plot(
                         xl,
@@ -201,10 +200,6 @@ def post_run(
         if depth is not None:
             files += _depth_files(depth, run_dir.name, out, figures, values)
         if figures:
-            from febed.post.figures import field_maps, snapshot_maps
-            from febed.post.grid import bin_sums
-            from febed.post.rundata import read_snapshot, select_window
-
             files.append(field_maps(avg, out / "fields.png"))
             chosen, _ = select_window(snaps, avg.window)
             frames = []
@@ -226,8 +221,6 @@ def post_run(
         rows = ([float(v) for v in r] for r in zip(*cols, strict=True))
         files.append(_write_csv(out / "timeseries.csv", header, rows))
         if figures and "dp_bed" in series and "bed_height" in series:
-            from febed.post.figures import series_plot
-
             files.append(series_plot(series, summary, info, out / "timeseries.png"))
     files.append(_write_csv(out / "summary.csv", ["key", "value"], values.items()))
     return PostResult(fields=avg, summary=summary, files=files, values=values)
@@ -245,7 +238,5 @@ def _depth_files(depth: DepthProfile, name: str, out: Path, figures: bool, value
         values[f"{stem}_spread_{b}/Uf"] = depth.spread(b) / u_f
     values[f"{stem}_front_back_asymmetry"] = depth.asymmetry()
     if figures:
-        from febed.post.figures import depth_plot
-
         files.append(depth_plot(depth, name, out / f"{stem}.png"))
     return files

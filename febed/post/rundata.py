@@ -15,6 +15,7 @@ not depend on the current parameter schema accepting an older run's file.
 from __future__ import annotations
 
 import binascii
+import json
 import logging
 import math
 import re
@@ -24,6 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from febed.coarse.scg import scg_particles
 
 log = logging.getLogger("febed.post")
 
@@ -98,6 +101,14 @@ def read_case(run_dir: str | Path) -> dict:
             with open(run_dir / name, "rb") as f:
                 return tomllib.load(f)
     raise ValueError(f"run_dir {run_dir}: no {' or '.join(CASE_FILES)} (is it a febed output folder?)")
+
+
+def read_status(run_dir: str | Path) -> dict | None:
+    """A run folder's status.json as a dict (`febed.io.rundir.write_status`); None if absent or unreadable."""
+    try:
+        return json.loads((Path(run_dir) / "status.json").read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def inlet_velocity(case: dict) -> float:
@@ -183,8 +194,6 @@ def _particle_density(case: dict) -> float:
     """Material density of the simulated particles (kg/m^3): the case's, or the SCG rule's (seed 003 eq 7)."""
     rho = float(_get(case, "particles.density", 2500.0))
     if _get(case, "coarse_grain.model", "none") == "scg":
-        from febed.coarse.scg import scg_particles
-
         ratio = float(_get(case, "coarse_grain.ratio", 1.0))
         return scg_particles(float(_get(case, "particles.diameter", 1e-3)), rho, ratio)[1]
     return rho

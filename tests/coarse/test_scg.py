@@ -8,10 +8,11 @@ import types
 import numpy as np
 import pytest
 
-from febed.coarse.oneway import OneWay, OneWayCase, run_oneway
+from febed.coarse.oneway import OneWay, OneWayCase
 from febed.coarse.scg import scg_count, scg_density, scg_particles
 from febed.dem import DEM, DEMParams
 from febed.gas.prescribed import make_prescribed_gas
+from febed.runs.oneway import run_oneway
 
 MU, RHO_G = 1.8e-5, 1.2
 

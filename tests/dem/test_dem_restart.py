@@ -1,4 +1,4 @@
-"""Pure-DEM runs write checkpoints and continue from them (`febed.dem.driver.DEMRun`), like coupled runs:
+"""Pure-DEM runs write checkpoints and continue from them (`febed.runs.dem.DEMRun`), like coupled runs:
 bit for bit on one rank, every particle once on any number of ranks; Ctrl-C/SIGTERM and blow-ups leave one."""
 
 import json
@@ -51,7 +51,7 @@ def case_at(folder, end, out, **extra):
 
 
 def run(case, out, restart=None):
-    from febed.dem.driver import run as dem_run
+    from febed.runs.dem import run as dem_run
 
     return dem_run(case, out, logging.getLogger("test"), MPI.COMM_WORLD, restart=restart)
 
@@ -88,8 +88,8 @@ def test_stop_and_restart_continues_the_run(mpi_tmp_path):
 
 @pytest.mark.mpi
 def test_sigterm_stops_with_a_checkpoint_that_continues(mpi_tmp_path):
-    from febed.dem.driver import DEMRun
-    from febed.run import Interrupted
+    from febed.runs.dem import DEMRun
+    from febed.runs.lifecycle import Interrupted
 
     out = mpi_tmp_path / "run"
     case = case_at(mpi_tmp_path, 0.02, out)

@@ -47,7 +47,7 @@ directory = "{out}"
 
 
 def test_pure_dem_case_runs_and_writes_particles(tmp_path):
-    from febed.dem.driver import run
+    from febed.runs.dem import run
 
     (tmp_path / "case.toml").write_text(CASE.format(out=tmp_path / "out", extra=""))
     case = load_case(tmp_path / "case.toml")
@@ -65,7 +65,7 @@ def test_pure_dem_case_runs_and_writes_particles(tmp_path):
 
 
 def test_bed_file_packed_once_then_loaded(tmp_path):
-    from febed.dem.driver import run
+    from febed.runs.dem import run
 
     extra = 'bed_file = "bed.npz"\nsettle_energy = 2e-8'
     text = CASE.format(out=tmp_path / "out", extra=extra).replace("0.01, 0.02, 0.02, 0.06]", "0.003, 0.02, 0.02, 0.02]")
@@ -82,7 +82,7 @@ def test_bed_file_packed_once_then_loaded(tmp_path):
 
 def test_pack_restitution_applies_to_the_packing_only(tmp_path):
     """A bed packed with pack_restitution = 0.3 is the bed a case with e = 0.3 packs; the run keeps e = 0.97."""
-    from febed.dem.driver import run
+    from febed.runs.dem import run
 
     beds = {}
     runs = [("damped", "restitution_pp = 0.3\nrestitution_pw = 0.3", ""),

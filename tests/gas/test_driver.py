@@ -1,5 +1,5 @@
 """Gas-only runs from a case: uniform or callable ε, XDMF fields (u, p, eps) at every field interval; progress,
-status, checkpoints, restart, signals and failures like coupled runs (`febed.gas.driver.GasRun`)."""
+status, checkpoints, restart, signals and failures like coupled runs (`febed.runs.gas.GasRun`)."""
 
 import json
 import logging
@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from febed.case import load_case
-from febed.gas.driver import GasRun, run
 from febed.io.checkpoint import list_checkpoints, load_checkpoint, read_checkpoint
-from febed.run import Interrupted
+from febed.runs.gas import GasRun, run
+from febed.runs.lifecycle import Interrupted
 from febed.solver import RunFailure
 
 

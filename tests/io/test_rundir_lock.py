@@ -120,8 +120,8 @@ def test_a_stale_lock_file_is_taken_over_with_a_logged_note(case_file):
     [(KeyboardInterrupt(), 130), ("interrupted", 128 + signal.SIGTERM), (ValueError("refused value"), 2)],
 )
 def test_the_lock_is_released_however_the_run_ends(case_file, monkeypatch, error, status):
-    from febed.dem import driver
-    from febed.run import Interrupted
+    from febed.runs import dem as driver
+    from febed.runs.lifecycle import Interrupted
 
     if error == "interrupted":
         error = Interrupted(signal.SIGTERM, "interrupted by SIGTERM")

@@ -8,7 +8,7 @@ from mpi4py import MPI
 
 import pytest
 
-from febed.run import agree
+from febed.runs.lifecycle import agree
 
 pytestmark = pytest.mark.mpi
 COMM = MPI.COMM_WORLD

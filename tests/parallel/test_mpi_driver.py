@@ -47,8 +47,9 @@ directory = "{out}"
 
 
 def test_pure_dem_run_on_all_ranks_matches_serial(mpi_tmp_path):
-    from febed.dem.driver import build_dem, run
+    from febed.bed import build_dem
     from febed.meshing import load_case_mesh
+    from febed.runs.dem import run
 
     comm = MPI.COMM_WORLD
     out = mpi_tmp_path / "out"

@@ -13,7 +13,8 @@ state at the owned nodes with their coordinates, `febed.restart.gas_arrays`) eve
 and at the end, and continues from one with `febed run CASE --restart` on any number of ranks. After every
 step the velocity and pressure are checked: a non-finite value, or a pressure solve that does not converge,
 stops the run with a message naming the node and the time, writes the last state that passed (kept every
-`GOOD_EVERY` steps and at each field output and progress line) as a checkpoint and exits with status 3.
+`GOOD_EVERY` steps and at each field output and progress line) as a checkpoint and exits with status 3
+(`febed.runs.lifecycle`).
 """
 
 from __future__ import annotations
@@ -29,8 +30,21 @@ import numpy as np
 from febed import restart as rs
 from febed.gas.pressure import PressureSolveError
 from febed.gas.vans import VANSSolver
+from febed.io.checkpoint import FOLDER, load_checkpoint, write_checkpoint
 from febed.io.fields import FieldWriter
 from febed.io.progress import Progress, RateMeter
+from febed.meshing import load_case_mesh
+from febed.runs.lifecycle import (
+    after_step,
+    catch_stop_signals,
+    checkpoint_or_fail,
+    close_files,
+    guarded_write,
+    record_failure,
+    run_to_end,
+    write_run_status,
+)
+from febed.solver import RunFailure
 
 GOOD_EVERY = 10  # gas steps between the copies of the state kept as the last good one (and at every output)
 
@@ -43,9 +57,6 @@ class GasRun:
 
         `eps`: None for the uniform `gas.void_fraction`, or a callable eps(x, t) -> (n,) array.
         """
-        from febed.meshing import load_case_mesh
-        from febed.run import guarded_write
-
         if eps is not None and not callable(eps):
             raise ValueError("eps must be a callable eps(x, t) -> (n,) array, or None for gas.void_fraction")
         self.case, self.outdir, self.log, self.comm = case, Path(outdir), log, comm
@@ -94,9 +105,6 @@ class GasRun:
 
     def checkpoint(self, state=None) -> Path:
         """Write a checkpoint of the current state, or of `state` from `capture` (collective)."""
-        from febed.io.checkpoint import FOLDER, write_checkpoint
-        from febed.run import checkpoint_or_fail
-
         arrays, meta = state if state is not None else self.capture()
         meta = {**meta, "case": self.case.to_toml()}
         path = checkpoint_or_fail(
@@ -110,9 +118,7 @@ class GasRun:
         return path
 
     def status(self, state: str, message: str = "", collective: bool = True) -> None:
-        """Write `status.json` (running / finished / failed / interrupted; `febed.run.write_run_status`)."""
-        from febed.run import write_run_status
-
+        """Write `status.json` (running / finished / failed / interrupted; `lifecycle.write_run_status`)."""
         end = self.case.run.end_time
         write_run_status(self.outdir, state, self.solver.t, end, self.steps, message, self.comm, collective)
 
@@ -136,11 +142,9 @@ class GasRun:
     def advance_to(self, end: float) -> None:
         """Step to `end` (s), writing fields, checkpoints and progress (collective).
 
-        Raises RunFailure (after writing the last good state) or `febed.run.Interrupted` (after a checkpoint).
+        Raises RunFailure (after writing the last good state) or `febed.runs.lifecycle.Interrupted` (after a
+        checkpoint).
         """
-        from febed.run import after_step, guarded_write
-        from febed.solver import RunFailure
-
         s = self.solver
         o = self.case.output
         if self.restarted_from is None and self.steps == 0:
@@ -201,20 +205,14 @@ class GasRun:
 
     def fail(self, error) -> None:
         """Record a failure: write the last good state as a checkpoint and the status (collective)."""
-        from febed.run import record_failure
-
         record_failure(self, error)
 
     def catch_signals(self):
-        """Handle `febed.run.STOP_SIGNALS` by stopping after the current gas step; returns the restorer."""
-        from febed.run import catch_stop_signals
-
+        """Handle the stop signals by stopping after the current gas step; returns the restorer."""
         return catch_stop_signals(self, "this gas step")
 
     def close(self, last_output: bool = True) -> None:
         """Close the field file (OutputFailure if that fails; a second call does nothing)."""
-        from febed.run import close_files
-
         close_files(self.comm, self.writer)
 
 
@@ -223,9 +221,6 @@ def run(case, outdir, log: logging.Logger | None = None, eps=None, mesh_data=Non
 
     `restart`: a checkpoint file or (run) folder to continue from (its newest valid checkpoint).
     """
-    from febed.io.checkpoint import load_checkpoint
-    from febed.run import run_to_end
-
     log = log or logging.getLogger("febed")
     comm = MPI.COMM_WORLD
     ckpt = None
