@@ -35,10 +35,12 @@ class CompileRecorder:
         return f"{func.__module__}.{func.__qualname__}"
 
     def on_start(self, event) -> None:
+        """A compilation starts (nested inside the one on top of the stack, if any)."""
         self.stack.append([self._name(event), time.perf_counter(), 0.0])
         self.signatures[self._name(event)].add(str(event.data["args"]))
 
     def on_end(self, event) -> None:
+        """A compilation ends: its time goes to its kernel, and to its parent's nested time."""
         name, start, nested = self.stack.pop()
         spent = time.perf_counter() - start
         self.inclusive[name] += spent
@@ -47,6 +49,7 @@ class CompileRecorder:
             self.stack[-1][2] += spent
 
     def report(self, top: int) -> str:
+        """The `top` kernels by exclusive compile time, and the totals, as text."""
         rows = sorted(self.exclusive, key=self.exclusive.get, reverse=True)
         lines = [f"{'kernel':72s} {'sigs':>4s} {'incl s':>7s} {'excl s':>7s}"]
         for name in rows[:top]:
@@ -62,6 +65,7 @@ class CompileRecorder:
 
 
 def main() -> int:
+    """Run pytest from an empty cache and print the compile times; returns pytest's exit code."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--top", type=int, default=30, help="kernels listed (default 30)")
     ap.add_argument("--keep-cache", action="store_true", help="keep the temporary cache folder")
