@@ -97,7 +97,7 @@ def coupled_bench(sim_time):
 
 def tm_bench(n_orig_total, steps):
     d0, rho = 1.5e-3, 1150.0  # seed 000 Table 2
-    base = DEMParams(kn=800.0, restitution_pp=0.9, restitution_pw=0.9, friction_pp=0.3)
+    base = DEMParams(stiffness=800.0, restitution_pp=0.9, restitution_pw=0.9, friction_pp=0.3)
     ref = None
     print(f"TM: {n_orig_total} originals in a box, {steps} DEM steps each (gravity, settling)")
     print(f"{'l':>4} {'parcels':>8} {'dt (us)':>9} {'us/step':>9} {'s per simulated s':>18} {'rel. to l=1':>11}")
@@ -120,7 +120,7 @@ def tm_bench(n_orig_total, steps):
 def pcpm_bench(count, calls):
     d0, rho = 1.5e-3, 1150.0
     lo, hi = np.zeros(3), np.full(3, (count * 8 * 4.0) ** (1 / 3) * d0)
-    dem = DEM(DEMParams(gravity=0.0, kn=800.0), walls=Walls.box(lo, hi))
+    dem = DEM(DEMParams(gravity=0.0, stiffness=800.0), walls=Walls.box(lo, hi))
     rng = np.random.default_rng(0)
     n0 = rng.integers(1, 9, count)
     dem.add_particles(random_positions(count, lo, hi, 2.05 * d0, seed=2), d0 * np.cbrt(n0), rho,
@@ -150,7 +150,7 @@ def pcpm_bench(count, calls):
 
 
 def oneway_bench(count, windows):
-    dem = DEM(DEMParams(kn=1e-3, gravity=0.0, rotation=False))
+    dem = DEM(DEMParams(stiffness=1e-3, gravity=0.0, rotation=False))
     lo, hi = np.array([-4e-4, -4e-4, 0]), np.array([4e-4, 4e-4, 4e-3])
     dem.add_particles(random_positions(count, lo, hi, 12e-6, seed=3), 10e-6, 1000.0)
     ow = OneWay(dem, make_prescribed_gas("vortex", rpm=300.0, inflow_ratio=0.1), "stokes")

@@ -41,7 +41,7 @@ def params(integrator: str, settle: bool = False):
 
     return DEMParams(
         contact_model="linear-history",
-        kn=200.0 if settle else 1000.0,
+        stiffness=200.0 if settle else 1000.0,
         tangential_ratio=2.0 / 7.0,
         restitution_pp=0.3 if settle else 0.97,
         restitution_pw=0.3 if settle else 0.97,
@@ -80,7 +80,7 @@ def packed_bed(n: int):
         save_bed(soft, dem.particles)
         print(f"  poured in {time.time() - t:.0f} s wall, {dem.time:.3f} s simulated, {dem.steps} steps", flush=True)
     # relax at the benchmark's stiffness, still damped and without rotation
-    stiff = DEM(replace(params("verlet", settle=True), kn=1000.0), walls=box, particles=dem.particles)
+    stiff = DEM(replace(params("verlet", settle=True), stiffness=1000.0), walls=box, particles=dem.particles)
     stiff.particles.vel[:] = 0.0
     settle(stiff, energy=1e-14, max_time=0.06, chunk=500, min_time=0.0)
     print(f"  relaxed in {stiff.time:.3f} s simulated, mean KE {stiff.mean_kinetic_energy():.1e} J", flush=True)

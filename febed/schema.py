@@ -1,7 +1,8 @@
 """Declarations of every case parameter: default, unit, allowed range or choices, help text.
 
 This is the one place a parameter is declared. `febed/case.py` validates against it,
-`febed params` prints it, and the resolved case written into each output folder is generated from it.
+`febed params` prints it, the resolved case written into each output folder is generated from it, and the
+Python API's parameter objects take their defaults and ranges from it (`schema_field`, `check_fields`).
 To add a parameter, add one `Param(...)` line to its section below and read it as `case.<section>.<key>`.
 
 Choices may be a tuple or a `Registry` (drag laws, contact laws, ...): the registry lists the names of
@@ -14,7 +15,7 @@ import hashlib
 import json
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import Field, dataclass, field, fields
 from fnmatch import fnmatch
 from typing import Any
 
@@ -562,6 +563,60 @@ def describe(section: str, key: str, par: Param) -> str:
     default = "(unset)" if par.default is None else par.default
     unit = f" [{par.unit}]" if par.unit not in ("", "-") else ""
     return f"{section}.{key} = {default!r}{unit}  -- {par.help}; {par.allowed()}"
+
+
+# ------------------------------------------------------------------------------ typed parameter objects
+# The Python API's parameter objects (`febed.dem.solver.DEMParams`, `febed.gas.vans.VANSParameters`,
+# `febed.coarse.oneway.OneWayCase`) declare no default or range of their own: a field made by
+# `schema_field("section.key")` defaults to that key's declared default, and `check_fields` checks its value
+# as the case validation checks the key. Their other fields are listed, with the reason, in the class's
+# `NOT_IN_CASE` (tests/test_params_single_source.py holds every field to one or the other).
+
+
+def param(key: str) -> Param:
+    """The declaration of a case key given as "section.key" (e.g. "contact.stiffness")."""
+    section, _, name = key.partition(".")
+    try:
+        return SCHEMA[section][name]
+    except KeyError:
+        raise KeyError(f"no parameter {key!r} is declared in febed/schema.py") from None
+
+
+def schema_field(key: str) -> Any:
+    """A dataclass field whose default is the declared default of `key` ("section.key"), checked against it."""
+    default = param(key).default
+    meta = {"schema": key}
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def schema_key(f: Field) -> str | None:
+    """The case key ("section.key") a dataclass field was made for by `schema_field`, or None."""
+    return f.metadata.get("schema")
+
+
+def check_fields(obj: Any) -> None:
+    """Raise ValueError naming the first `schema_field` of dataclass `obj` whose value its case key refuses.
+
+    A key whose declared default is None (unset) accepts None. The message names the field, its value, the
+    case key and what is allowed, e.g. `DEMParams.stiffness = -1.0 (contact.stiffness): expected a number > 0`.
+    """
+    for f in fields(obj):
+        key = schema_key(f)
+        if key is None:
+            continue
+        value = getattr(obj, f.name)
+        par = param(key)
+        if value is None and par.default is None:
+            continue
+        if getattr(value, "shape", None) == () and hasattr(value, "item"):
+            value = value.item()  # a NumPy scalar: check it as the Python number it holds
+        if isinstance(value, tuple) and par.type is list:
+            value = list(value)
+        _, err = par.check(value)
+        if err:
+            raise ValueError(f"{type(obj).__name__}.{f.name} = {getattr(obj, f.name)!r} ({key}): {err}")
 
 
 # ------------------------------------------------------------------------------ restarts and identity

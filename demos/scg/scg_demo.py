@@ -62,13 +62,13 @@ def cylinder_walls(radius, sides=64, z=None):
 # histories must coincide; without it the larger particles lag.
 
 
-def single_particles(flow, d0, rho0, pos, t_end, h, walls=None, kn=1.0):
+def single_particles(flow, d0, rho0, pos, t_end, h, walls=None, stiffness=1.0):
     """Speed histories (n_windows + 1, 4) of the four Table 1/2 particles, with and without eq 7."""
     out = {}
     for rule in (True, False):
         d = d0 * RATIOS
         rho = scg_density(rho0, d0, d) if rule else np.full(4, rho0)
-        dem = DEM(DEMParams(kn=kn, gravity=0.0, rotation=False, restitution_pw=0.5), walls=walls)
+        dem = DEM(DEMParams(stiffness=stiffness, gravity=0.0, rotation=False, restitution_pw=0.5), walls=walls)
         dem.add_particles(pos, d, rho)
         ow = OneWay(dem, flow, "stokes")
         t, s = [0.0], [np.zeros(4)]
@@ -126,7 +126,7 @@ D_ORIG = np.array([100e-6, 160e-6, 220e-6, 280e-6])
 RHO_ORIG = 100.0
 
 
-def classifier(model, t_end, t_sample, n_big, kn=0.1, seed=1, dt_sample=5e-4):
+def classifier(model, t_end, t_sample, n_big, stiffness=0.1, seed=1, dt_sample=5e-4):
     """Run one classifier case; model: 'original', 'scg' or 'plain' (2x, unchanged density)."""
     ratio = 1.0 if model == "original" else 2.0
     d = D_ORIG * ratio
@@ -140,8 +140,8 @@ def classifier(model, t_end, t_sample, n_big, kn=0.1, seed=1, dt_sample=5e-4):
     sizes = np.concatenate([np.full(k, i) for i, k in enumerate(n_feed)])
     rng.shuffle(sizes)
     feed_t = np.sort(rng.uniform(0.0, t_end, sizes.size))
-    params = DEMParams(contact_model="linear", kn=kn, restitution_pp=0.5, restitution_pw=0.5, friction_pp=0.3,
-                       friction_pw=0.3, gravity=9.81, rotation=False, skin=2.0)  # fmt: skip
+    params = DEMParams(contact_model="linear", stiffness=stiffness, restitution_pp=0.5, restitution_pw=0.5,
+                       friction_pp=0.3, friction_pw=0.3, gravity=9.81, rotation=False, skin=2.0)  # fmt: skip
     dem = DEM(params, walls=cylinder_walls(R, z=(0.0, H)))
     gas = make_prescribed_gas("vortex", RHO_G, MU, rpm=5000.0, inflow_ratio=5.0, outlet_radius=R_O,
                               outlet_velocity=1.0)  # fmt: skip
@@ -249,7 +249,7 @@ def main(argv=None):
     flow = make_prescribed_gas("vortex", RHO_G, MU, rpm=300.0, inflow_ratio=0.1)
     pos = np.array([[0.4e-3, 0.0, 0.2e-3 * (k + 1)] for k in range(4)])
     t_v = 3.0 if args.full else 0.5
-    res = single_particles(flow, d0, rho0, pos, t_v, tau / 5, walls=cylinder_walls(0.5e-3), kn=1e-3)
+    res = single_particles(flow, d0, rho0, pos, t_v, tau / 5, walls=cylinder_walls(0.5e-3), stiffness=1e-3)
     plot_speeds(res, "vortex flow (Table 2)", "mm/s", 1e3, out / "fig6_vortex_speed.png",
                 [f"{d0 * r * 1e6:g} um" for r in RATIOS])  # fmt: skip
     results["vortex"] = {
@@ -261,8 +261,8 @@ def main(argv=None):
     }
 
     # 3. classifier, Table 3
-    t_end, t_sample, n_big, kn = (0.3, 0.2, 64, 10.0) if args.full else (0.15, 0.1, 16, 0.1)
-    runs = {m: classifier(m, t_end, t_sample, n_big, kn) for m in ("original", "scg", "plain")}
+    t_end, t_sample, n_big, stiffness = (0.3, 0.2, 64, 10.0) if args.full else (0.15, 0.1, 16, 0.1)
+    runs = {m: classifier(m, t_end, t_sample, n_big, stiffness) for m in ("original", "scg", "plain")}
     bins = np.linspace(0.0, R, 26)
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.6), sharey=True)
     hist = {}

@@ -19,25 +19,36 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
 from febed.coupling.drag import drag_forces, get_drag_law
 from febed.gas.prescribed import PrescribedGas
+from febed.schema import check_fields, param, schema_field
 
-INTEGRATIONS = ("exponential", "explicit")
+INTEGRATIONS = tuple(param("prescribed_gas.integration").choices)
+# `OneWay`'s defaults: those of the case keys
+_DRAG, _INTEGRATION, _DRAG_FACTOR = (
+    param(key).default for key in ("coupling.drag", "prescribed_gas.integration", "prescribed_gas.drag_factor")
+)
 
 
 class OneWay:
     """A DEM in a prescribed gas: `advance(t_end)` moves the particles; `callback(self)` runs after each window."""
 
-    def __init__(self, dem, gas: PrescribedGas, drag: str = "stokes", integration: str = "exponential",
-                 drag_factor: float = 20.0, sink: Callable | None = None):  # fmt: skip
-        """Couple `dem` to `gas` with a registered drag law; `sink(pos, diameter) -> bool mask` removes particles."""
-        if integration not in INTEGRATIONS:
-            raise ValueError(f"integration: must be one of {INTEGRATIONS}, got {integration!r}")
-        if not drag_factor > 0:
-            raise ValueError(f"drag_factor: must be > 0, got {drag_factor}")
+    def __init__(self, dem, gas: PrescribedGas, drag: str = _DRAG, integration: str = _INTEGRATION,
+                 drag_factor: float = _DRAG_FACTOR, sink: Callable | None = None):  # fmt: skip
+        """Couple `dem` to `gas` with a registered drag law; `sink(pos, diameter) -> bool mask` removes particles.
+
+        The defaults and allowed values of `drag`, `integration` and `drag_factor` are those of the case keys
+        `coupling.drag`, `prescribed_gas.integration` and `prescribed_gas.drag_factor`.
+        """
+        for name, key, value in (("integration", "prescribed_gas.integration", integration),
+                                 ("drag_factor", "prescribed_gas.drag_factor", drag_factor)):  # fmt: skip
+            _, err = param(key).check(value)
+            if err:
+                raise ValueError(f"{name} = {value!r} ({key}): {err}")
         self.dem = dem
         self.gas = gas
         self.law = get_drag_law(drag)
@@ -107,6 +118,10 @@ class OneWay:
 class OneWayCase:
     """The parameters of a one-way run (`case_settings` reads them from a case with `[run] mode = "one-way"`).
 
+    Each field but `NOT_IN_CASE`'s is the case key of its name in the section `case_settings` reads it from;
+    its default and allowed values are that key's in `febed/schema.py`. A value the key refuses is a
+    ValueError naming the field and the key when the object is made.
+
     Attributes:
         flow: prescribed flow name (uniform | vortex | function); flow_params: its keyword parameters.
         drag: registered drag law; density, viscosity: gas ρ_g (kg/m^3), μ_g (Pa s).
@@ -115,17 +130,31 @@ class OneWayCase:
         progress_interval: wall-clock s between progress lines.
     """
 
-    flow: str = "uniform"
+    # fields that are no single case key, and why
+    NOT_IN_CASE: ClassVar[dict[str, str]] = {
+        "flow_params": "the keyword parameters of `flow`, gathered from its [prescribed_gas] keys by case_settings",
+    }
+
+    flow: str = schema_field("prescribed_gas.flow")
     flow_params: dict = field(default_factory=dict)
-    drag: str = "stokes"
-    density: float = 1.2
-    viscosity: float = 1.8e-5
-    end_time: float = 1.0
-    window: float = 0.0
-    drag_factor: float = 20.0
-    integration: str = "exponential"
-    output_interval: float = 0.01
-    progress_interval: float = 10.0
+    drag: str = schema_field("coupling.drag")
+    density: float = schema_field("gas.density")
+    viscosity: float = schema_field("gas.viscosity")
+    end_time: float = schema_field("run.end_time")
+    window: float = schema_field("prescribed_gas.window")
+    drag_factor: float = schema_field("prescribed_gas.drag_factor")
+    integration: str = schema_field("prescribed_gas.integration")
+    output_interval: float = schema_field("prescribed_gas.output_interval")
+    progress_interval: float = schema_field("output.progress_interval")
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first parameter out of range (the ranges of `febed/schema.py`)."""
+        check_fields(self)
+        if not isinstance(self.flow_params, dict):
+            raise ValueError(f"OneWayCase.flow_params must be a dict of keyword parameters, got {self.flow_params!r}")
 
 
 def case_settings(case) -> OneWayCase:

@@ -100,11 +100,11 @@ def tm_dem_params(params, ratio: float, damping: str = "force"):
     check_ratio(ratio)
     if ratio == 1.0:
         return params
-    kw = None if params.kn_wall is None else params.kn_wall * ratio * ratio
+    kw = None if params.stiffness_wall is None else params.stiffness_wall * ratio * ratio
     e_pp = restitution_from_ratio(tm_damping_ratio(damping_ratio(params.restitution_pp), ratio, damping))
     e_pw = restitution_from_ratio(tm_damping_ratio(damping_ratio(params.restitution_pw), ratio, damping))
-    kn = params.kn * ratio * ratio
-    return dataclasses.replace(params, kn=kn, kn_wall=kw, restitution_pp=e_pp, restitution_pw=e_pw)
+    kn = params.stiffness * ratio * ratio
+    return dataclasses.replace(params, stiffness=kn, stiffness_wall=kw, restitution_pp=e_pp, restitution_pw=e_pw)
 
 
 def tm_contact_time(kn: float, e: float, m_eff: float, ratio: float, damping: str = "force") -> float:

@@ -18,6 +18,7 @@ small the step) and stops at a whole step if it says so (`StopRequested`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -38,6 +39,7 @@ from febed.dem.neighbours import (
 )
 from febed.dem.particles import Particles
 from febed.dem.walls import Walls, build_wall_pairs, wall_overlap_squares
+from febed.schema import check_fields, schema_field
 
 BLOW_UP_JUMP = 1000.0  # a jump in one step beyond this many times the cloud's size is a blow-up (`DEM._blow_up`)
 STOP_CHECK_WORK = 1_000_000  # particle steps between two questions to `DEM.stop_check` (a fraction of a second)
@@ -62,10 +64,14 @@ class StopRequested(Exception):
 class DEMParams:
     """Plain DEM parameters (SI units); `DEM.from_case` fills them from a case.
 
+    Each field but `NOT_IN_CASE`'s is a case key of the same name (`contact.stiffness` -> `stiffness`;
+    `contact_model` is `contact.model`): its default and allowed range are that key's in `febed/schema.py`.
+
     Attributes:
         dim: 3, or 2 for spheres moving in the x-y plane (gravity along -y).
         contact_model: registered contact law ("linear", "linear-history").
-        kn: normal stiffness k_n (N/m) of particle-particle contacts; kn_wall for walls (None: = kn).
+        stiffness: normal stiffness k_n (N/m) of particle-particle contacts; stiffness_wall for walls (None: the
+            same as stiffness).
         tangential_ratio: k_t / k_n (linear-history).
         restitution_pp, restitution_pw: normal restitution e_p, e_w.
         friction_pp, friction_pw: Coulomb friction mu_p, mu_w.
@@ -78,36 +84,39 @@ class DEMParams:
         sort_every: ... at every sort_every-th pair-list rebuild (and whenever rows change anyway).
     """
 
+    # fields that are no case key, and why
+    NOT_IN_CASE: ClassVar[dict[str, str]] = {
+        "dim": "the mesh's dimension",
+        "sort": "a memory-layout setting of the Python API",
+        "sort_every": "a memory-layout setting of the Python API",
+    }
+
     dim: int = 3
-    contact_model: str = "linear-history"
-    kn: float = 1000.0
-    kn_wall: float | None = None
-    tangential_ratio: float = 2.0 / 7.0
-    restitution_pp: float = 0.9
-    restitution_pw: float = 0.9
-    friction_pp: float = 0.3
-    friction_pw: float = 0.3
-    integrator: str = "rk2"
-    dt_factor: float = 6.0
-    skin: float = 0.1
-    gravity: float = 9.81
-    rotation: bool = True
+    contact_model: str = schema_field("contact.model")
+    stiffness: float = schema_field("contact.stiffness")
+    stiffness_wall: float | None = schema_field("contact.stiffness_wall")
+    tangential_ratio: float = schema_field("contact.tangential_ratio")
+    restitution_pp: float = schema_field("contact.restitution_pp")
+    restitution_pw: float = schema_field("contact.restitution_pw")
+    friction_pp: float = schema_field("contact.friction_pp")
+    friction_pw: float = schema_field("contact.friction_pw")
+    integrator: str = schema_field("contact.integrator")
+    dt_factor: float = schema_field("contact.dt_factor")
+    skin: float = schema_field("contact.skin")
+    gravity: float = schema_field("run.gravity")
+    rotation: bool = schema_field("particles.rotation")
     sort: bool = True
     sort_every: int = 20
 
     def validate(self) -> None:
-        """Raise ValueError naming the first parameter out of range."""
+        """Raise ValueError naming the first parameter out of range (the ranges of `febed/schema.py`)."""
         if self.dim not in (2, 3):
-            raise ValueError(f"dim must be 2 or 3, got {self.dim}")
-        for name in ("kn", "dt_factor", "skin"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("restitution_pp", "restitution_pw"):
-            if not 0 < getattr(self, name) <= 1:
-                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
-        for name in ("friction_pp", "friction_pw", "tangential_ratio", "gravity"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+            raise ValueError(f"DEMParams.dim must be 2 or 3, got {self.dim!r}")
+        check_fields(self)
+        if not isinstance(self.sort, bool):
+            raise ValueError(f"DEMParams.sort must be true or false, got {self.sort!r}")
+        if isinstance(self.sort_every, bool) or not isinstance(self.sort_every, int) or self.sort_every < 1:
+            raise ValueError(f"DEMParams.sort_every must be an integer >= 1, got {self.sort_every!r}")
 
 
 class DEM:
@@ -119,8 +128,8 @@ class DEM:
         p.validate()
         self.law: ContactLaw = get_law(p.contact_model)
         self.integrator = get_integrator(p.integrator)
-        kw = p.kn if p.kn_wall is None else p.kn_wall
-        self.pp = self.law.params(p.kn, p.restitution_pp, p.friction_pp, p.tangential_ratio * p.kn)
+        kw = p.stiffness if p.stiffness_wall is None else p.stiffness_wall
+        self.pp = self.law.params(p.stiffness, p.restitution_pp, p.friction_pp, p.tangential_ratio * p.stiffness)
         self.pw = self.law.params(kw, p.restitution_pw, p.friction_pw, p.tangential_ratio * kw)
         self.particles = particles if particles is not None else Particles()
         self.walls = walls if walls is not None else Walls()
@@ -150,17 +159,17 @@ class DEM:
     def from_case(cls, case, walls: Walls | None = None, dim: int = 3, particles: Particles | None = None) -> DEM:
         """A DEM with the parameters of `case` ([contact], [particles], [run]) and the given walls."""
         c = case.contact
-        kn = c.stiffness
+        stiffness = c.stiffness
         kt_ratio = c.tangential_ratio
         if c.from_material:
             d = case.particles.diameter
-            kn, kt = stiffness_from_material(c.young_modulus, c.poisson, 0.5 * d, c.reference_overlap * d)
-            kt_ratio = kt / kn
+            stiffness, kt = stiffness_from_material(c.young_modulus, c.poisson, 0.5 * d, c.reference_overlap * d)
+            kt_ratio = kt / stiffness
         params = DEMParams(
             dim=dim,
             contact_model=c.model,
-            kn=kn,
-            kn_wall=c.stiffness_wall,
+            stiffness=stiffness,
+            stiffness_wall=c.stiffness_wall,
             tangential_ratio=kt_ratio,
             restitution_pp=c.restitution_pp,
             restitution_pw=c.restitution_pw,

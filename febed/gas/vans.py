@@ -84,6 +84,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -95,50 +96,47 @@ from febed.gas import kernels
 from febed.gas.boundary import BoundarySpec, NodalBoundary
 from febed.gas.operators import build_operators
 from febed.gas.pressure import PressureSolver
+from febed.schema import check_fields, schema_field
 
 
 @dataclass
 class VANSParameters:
-    """Plain parameters of the gas solver (SI units); `VANSSolver.from_case` fills them from a case."""
+    """Plain parameters of the gas solver (SI units); `VANSSolver.from_case` fills them from a case.
 
-    density: float = 1.2
-    viscosity: float = 1.8e-5
-    les: str = "none"
-    smagorinsky_cs: float = 0.17
-    cfl: float = 0.2
-    fourier: float = 0.15
-    dt_min: float = 1e-6
-    dt_max: float = 1e-3
-    drag_number: float = 0.0  # largest K Δt/(ρ ε) of a step (0: no limit), see "Time step" in the module docstring
-    pressure_passes: int = 1  # predictor-correction passes per step, see "Drag and the pressure equation"
-    drag_weighted_projection: bool = False  # pressure operator and correction weighted by 1/(1 + KΔt/(ρε))
-    gravity: float = 0.0  # magnitude [m/s^2], along -z (3D) / -y (2D)
+    Each field but `NOT_IN_CASE`'s is the case key `gas.<field>` (`gravity`: `run.gravity`), whose default and
+    allowed range in `febed/schema.py` are the field's (see the module docstring for what they do).
+    """
+
+    # fields that are no single case key, and why
+    NOT_IN_CASE: ClassVar[dict[str, str]] = {
+        "boundaries": "built from the [gas.boundary.<tag>] tables (each checked by BoundarySpec.validate)",
+        "prefix": "the PETSc options prefix of the solver's own solves",
+    }
+
+    density: float = schema_field("gas.density")
+    viscosity: float = schema_field("gas.viscosity")
+    les: str = schema_field("gas.les")
+    smagorinsky_cs: float = schema_field("gas.smagorinsky_cs")
+    cfl: float = schema_field("gas.cfl")
+    fourier: float = schema_field("gas.fourier")
+    dt_min: float = schema_field("gas.dt_min")
+    dt_max: float = schema_field("gas.dt_max")
+    drag_number: float = schema_field("gas.drag_number")  # largest K Δt/(ρ ε) of a step (0: no limit), "Time step"
+    pressure_passes: int = schema_field("gas.pressure_passes")  # see "Drag and the pressure equation"
+    drag_weighted_projection: bool = schema_field("gas.drag_weighted_projection")  # operator weighted 1/(1+KΔt/(ρε))
+    gravity: float = schema_field("run.gravity")  # magnitude [m/s^2], along -z (3D) / -y (2D)
     boundaries: dict[str, BoundarySpec] = field(default_factory=dict)
-    taylor_galerkin: bool = True
-    pressure_rtol: float = 1e-8  # Poisson tolerance relative to ||b|| when no gas flows in
-    mass_tolerance: float = 1e-6  # with inflow: Poisson stops when |mass imbalance| <= this x inflow
-    backflow: float = 1.0  # β of the outlet backflow stabilisation (0 switches it off)
+    taylor_galerkin: bool = schema_field("gas.taylor_galerkin")
+    pressure_rtol: float = schema_field("gas.pressure_rtol")  # Poisson tolerance relative to ||b|| without inflow
+    mass_tolerance: float = schema_field("gas.mass_tolerance")  # with inflow: |mass imbalance| <= this x inflow
+    backflow: float = schema_field("gas.backflow")  # β of the outlet backflow stabilisation (0 switches it off)
     prefix: str = "febed_"
 
     def validate(self) -> None:
-        """Raise ValueError naming the first bad parameter and what is allowed."""
-        for name in ("density", "viscosity", "cfl", "fourier", "dt_min", "dt_max", "pressure_rtol", "mass_tolerance"):
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f"VANSParameters.{name} must be > 0, got {getattr(self, name)!r}")
-        if not 0.0 <= self.backflow <= 10.0:
-            raise ValueError(f"VANSParameters.backflow must lie in [0, 10], got {self.backflow!r}")
-        if self.les not in ("none", "smagorinsky"):
-            raise ValueError(f"VANSParameters.les must be 'none' or 'smagorinsky', got {self.les!r}")
-        if not self.drag_number >= 0.0:
-            raise ValueError(f"VANSParameters.drag_number must be >= 0 (0: no limit), got {self.drag_number!r}")
-        if not (isinstance(self.pressure_passes, int) and 1 <= self.pressure_passes <= 10):
-            raise ValueError(
-                f"VANSParameters.pressure_passes must be an integer in [1, 10], got {self.pressure_passes!r}"
-            )
+        """Raise ValueError naming the first bad parameter and what is allowed (the ranges of `febed/schema.py`)."""
+        check_fields(self)
         if self.dt_min > self.dt_max:
             raise ValueError(f"VANSParameters.dt_min ({self.dt_min}) must not exceed dt_max ({self.dt_max})")
-        if self.gravity < 0.0:
-            raise ValueError(f"VANSParameters.gravity is a magnitude >= 0, got {self.gravity}")
 
 
 def apply_petsc_options(text: str) -> None:

@@ -84,7 +84,7 @@ def _check_groups(P, rho):
 def test_random_events_conserve_originals_and_momentum(dim):
     rng = np.random.default_rng(7)
     lo, hi = np.zeros(3), np.array([0.03, 0.03, 0.03]) if dim == 3 else np.array([0.06, 0.06, 0.0])
-    dem = DEM(DEMParams(dim=dim, gravity=0.0, kn=800.0), walls=Walls.box(lo, hi, dim))
+    dem = DEM(DEMParams(dim=dim, gravity=0.0, stiffness=800.0), walls=Walls.box(lo, hi, dim))
     count = 400 if dim == 3 else 300
     n0 = rng.integers(1, 9, count)
     pos = random_positions(count, lo, hi, 2.05 * DO, dim=dim, seed=1)
@@ -129,7 +129,7 @@ def test_update_on_a_bed_reports_energy():
     """update(): d_cl from the flow, contact power from the contacts, energy injected by the events."""
     rng = np.random.default_rng(2)
     lo, hi = np.zeros(3), np.array([0.02, 0.02, 0.02])
-    dem = DEM(DEMParams(gravity=0.0, kn=800.0), walls=Walls.box(lo, hi))
+    dem = DEM(DEMParams(gravity=0.0, stiffness=800.0), walls=Walls.box(lo, hi))
     pos = random_positions(60, lo, hi, 2.05 * DO, seed=4)
     dem.add_particles(pos, 2 * DO, RHO, vel=np.array([0.0, 0.0, 5e-4]) + 1e-6 * rng.normal(size=(60, 3)), n_orig=8)
     gd = GroupDynamics(DO, RHO, 1.2, 1.8e-5, 0.45, u_mf=0.3, overlap_tolerance=0.1)

@@ -17,7 +17,7 @@ D8 = 2.0 * DO  # a group of 8 originals
 
 
 def _dem(pos, n_orig, vel=None, omega=None):
-    dem = DEM(DEMParams(kn=KN, gravity=0.0, contact_model="linear"))
+    dem = DEM(DEMParams(stiffness=KN, gravity=0.0, contact_model="linear"))
     pos = np.asarray(pos, float)
     n_orig = np.asarray(n_orig)
     dem.add_particles(pos, DO * np.cbrt(n_orig), RHO, vel=vel, omega=omega, n_orig=n_orig)

@@ -34,7 +34,7 @@ def test_events_across_the_partition_conserve_and_do_not_overlap():
     lo, hi = np.zeros(3), np.array([L, L, 2 * L])  # the partition plane is z = L on 2 ranks
     mesh = dm.create_box(COMM, [lo, hi], [2, 2, 4], dm.CellType.hexahedron, dm.GhostMode.shared_facet,
                          slab_partitioner())  # fmt: skip
-    dem = DEM(DEMParams(gravity=0.0, kn=800.0, contact_model="linear"), walls=Walls.box(lo, hi))
+    dem = DEM(DEMParams(gravity=0.0, stiffness=800.0, contact_model="linear"), walls=Walls.box(lo, hi))
     rng = np.random.default_rng(11)
     pos = random_positions(150, lo, hi, 2.1 * DO, seed=2)  # the same on every rank, then distributed
     vel = np.array([0.2, 0.0, 0.0]) + 1e-4 * rng.normal(size=(150, 3))

@@ -107,7 +107,7 @@ def test_event_decisions_match_the_reference():
             merge = dist < ri + rj and dv < 0.01 * vmax and ni + nj <= 27 and dn <= min(dci, dcj)
             expect[s] = Counter([ni + nj]) if merge else Counter([ni, nj])
     n_orig = np.array(n_orig)
-    dem = DEM(DEMParams(gravity=0.0, kn=800.0))
+    dem = DEM(DEMParams(gravity=0.0, stiffness=800.0))
     dem.add_particles(np.array(pos), DO * np.cbrt(n_orig), RHO, vel=np.array(vel), n_orig=n_orig)
     gd = GroupDynamics(DO, RHO, RHO_G, 1.7e-5, EPS_MF, overlap_tolerance=0.3, max_group=27, merge_tolerance=0.01,
                        measure_energy=False, seed=2)  # fmt: skip

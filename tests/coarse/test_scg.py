@@ -18,7 +18,7 @@ MU, RHO_G = 1.8e-5, 1.2
 
 
 def _speeds(gas, d0, rho0, pos, rule, t_end, h, drag="stokes", integration="exponential"):
-    dem = DEM(DEMParams(kn=1.0, gravity=0.0, rotation=False))
+    dem = DEM(DEMParams(stiffness=1.0, gravity=0.0, rotation=False))
     ratios = np.array([1.0, 2.0, 4.0, 8.0])
     d = d0 * ratios
     rho = scg_density(rho0, d0, d) if rule else np.full(4, rho0)
@@ -92,13 +92,13 @@ def test_vortex_field_and_user_function(tmp_path):
     g = make_prescribed_gas("function", function="febed_test_flow:shear")
     assert np.array_equal(g.velocity(x)[:, 0], x[:, 1])
     # the driver writes its particle history
-    dem = DEM(DEMParams(kn=1.0, gravity=0.0))
+    dem = DEM(DEMParams(stiffness=1.0, gravity=0.0))
     dem.add_particles(np.array([[0.0, 0.5, 0.0]]), 1e-4, 1000.0)
-    ow = run_oneway(OneWayCase(flow="function", flow_params={"function": "febed_test_flow:shear"}, end_time=0.1,
-                               output_interval=0.05), tmp_path, dem=dem)  # fmt: skip
+    ow = run_oneway(OneWayCase(flow="function", flow_params={"function": "febed_test_flow:shear"}, drag="stokes",
+                               end_time=0.1, output_interval=0.05), tmp_path, dem=dem)  # fmt: skip
     data = np.loadtxt(tmp_path / "particles.csv", delimiter=",", skiprows=1)
     assert data.shape[0] == 3 and ow.t == pytest.approx(0.1)
-    bad = DEM(DEMParams(kn=1.0, gravity=0.0))
+    bad = DEM(DEMParams(stiffness=1.0, gravity=0.0))
     bad.add_particles(np.array([[0.0, 0.5, 0.0], [0.0, 0.6, 0.0]]), 1e-4, 1000.0)
     bad.particles.vel[1, 0] = np.nan
     from febed.solver import RunFailure

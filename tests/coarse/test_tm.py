@@ -42,7 +42,7 @@ def _run(params, d, n_orig, steps=400):
 
 @pytest.mark.parametrize("law", ["linear", "linear-history"])
 def test_ratio_one_is_plain_dem_bit_for_bit(law):
-    base = DEMParams(contact_model=law, kn=KN, restitution_pp=0.8, friction_pp=0.3, gravity=9.81)
+    base = DEMParams(contact_model=law, stiffness=KN, restitution_pp=0.8, friction_pp=0.3, gravity=9.81)
     ref = _run(base, D, 1)
     d, n = tm_parcels(D, 1.0)
     assert (d, n) == (D, 1)
@@ -56,11 +56,11 @@ def test_ratio_one_is_plain_dem_bit_for_bit(law):
 @pytest.mark.parametrize("ratio", [2.0, 3.0, 2.0 ** (1 / 3)])
 def test_parcel_contact_force_is_l3_times_original(ratio):
     """Eq 24-25: at overlap l delta_O and the same relative velocity, the parcel force is l^3 F_O."""
-    base = DEMParams(kn=KN, restitution_pp=0.7, friction_pp=0.3)
+    base = DEMParams(stiffness=KN, restitution_pp=0.7, friction_pp=0.3)
     dem = DEM(base)
     m_o = M / 2
     m_cg = ratio**3 * M / 2
-    for p, func in ((dem.pp, linear_history), (DEM(DEMParams(contact_model="linear", kn=KN)).pp, linear)):
+    for p, func in ((dem.pp, linear_history), (DEM(DEMParams(contact_model="linear", stiffness=KN)).pp, linear)):
         q = tm_contact_params(p, ratio)
         delta, h = 2e-6, (1e-7, -2e-7, 0.0)
         n = (0.0, 0.6, 0.8)
@@ -97,7 +97,9 @@ def _contact_duration(params, d, rho, dt_frac=1 / 2000):
 
 @pytest.mark.parametrize("e", [1.0, 0.8])
 def test_contact_time_scales_as_analytic(e):
-    base = DEMParams(contact_model="linear", kn=KN, restitution_pp=e, friction_pp=0.0, gravity=0.0, rotation=False)
+    base = DEMParams(
+        contact_model="linear", stiffness=KN, restitution_pp=e, friction_pp=0.0, gravity=0.0, rotation=False
+    )
     t1, e1, m1 = _contact_duration(base, D, RHO)
     for ratio in (2.0, 3.0):
         tl, el, _ = _contact_duration(tm_dem_params(base, ratio), ratio * D, RHO)
@@ -167,7 +169,9 @@ def test_group_contacts_scale_per_pair():
     from febed.coarse.tm import use_group_contacts
     from febed.dem.contact import GroupParams, linear_groups
 
-    base = DEMParams(contact_model="linear", kn=KN, restitution_pp=0.8, friction_pp=0.3, gravity=0.0, rotation=False)
+    base = DEMParams(
+        contact_model="linear", stiffness=KN, restitution_pp=0.8, friction_pp=0.3, gravity=0.0, rotation=False
+    )
     p = DEM(base).pp
     for ratio in (1.0, 2.0, 3.0):
         m_eff = ratio**3 * M / 2

@@ -17,7 +17,7 @@ D, RHO, KN = 1e-3, 2500.0, 1000.0
 
 def lattice_dem(integrator: str) -> DEM:
     """27 touching-free spheres on a 1.2 d lattice, at rest without gravity."""
-    dem = DEM(DEMParams(kn=KN, gravity=0.0, integrator=integrator))
+    dem = DEM(DEMParams(stiffness=KN, gravity=0.0, integrator=integrator))
     g = np.arange(3) * 1.2 * D
     pos = np.array(np.meshgrid(g, g, g, indexing="ij")).reshape(3, -1).T
     dem.add_particles(pos, D, RHO)

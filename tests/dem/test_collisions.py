@@ -12,15 +12,15 @@ D, RHO, KN = 1e-3, 2500.0, 1000.0
 M = RHO * math.pi / 6 * D**3
 
 
-def pair_dem(law, e, mu, integrator="rk2", rotation=True, kn=KN):
-    p = DEMParams(contact_model=law, kn=kn, restitution_pp=e, friction_pp=mu, gravity=0.0, integrator=integrator,
-                  rotation=rotation)  # fmt: skip
+def pair_dem(law, e, mu, integrator="rk2", rotation=True, stiffness=KN):
+    p = DEMParams(contact_model=law, stiffness=stiffness, restitution_pp=e, friction_pp=mu, gravity=0.0,
+                  integrator=integrator, rotation=rotation)  # fmt: skip
     return DEM(p)
 
 
 def collide(dem, pos, vel, factor=50):
     dem.add_particles(np.asarray(pos, float), D, RHO, vel=np.asarray(vel, float))
-    dt = contact_time(dem.params.kn, dem.params.restitution_pp, M / 2) / factor
+    dt = contact_time(dem.params.stiffness, dem.params.restitution_pp, M / 2) / factor
     p0 = (dem.particles.mass[:, None] * dem.particles.vel).sum(axis=0)
     dem.advance(int(4 * factor), dt)
     return p0
@@ -47,7 +47,7 @@ def test_sliding_impact_matches_coulomb_impulse(law):
     A stiff contact (short, so the normal hardly turns while the spheres slide) approximates the impulse theory.
     """
     e, mu, vn, vt = 0.9, 0.1, 0.1, 0.2
-    dem = pair_dem(law, e, mu, kn=1e5)
+    dem = pair_dem(law, e, mu, stiffness=1e5)
     collide(dem, [[0, 0, 0], [D * (1 + 1e-9), 0, 0]], [[vn, vt, 0], [0, 0, 0]], factor=100)
     P = dem.particles
     jn = (1 + e) * (M / 2) * vn  # normal impulse of the restitution law
@@ -66,7 +66,7 @@ def test_sliding_impact_matches_coulomb_impulse(law):
 @pytest.mark.parametrize("law", ["linear", "linear-history"])
 def test_sliding_wall_impact_matches_coulomb_impulse(law):
     e, mu, vn, vt = 0.9, 0.1, 0.1, 0.2
-    p = DEMParams(contact_model=law, kn=KN, restitution_pw=e, friction_pw=mu, gravity=0.0)
+    p = DEMParams(contact_model=law, stiffness=KN, restitution_pw=e, friction_pw=mu, gravity=0.0)
     dem = DEM(p, walls=Walls(planes=[((0, 0, 0), (0, 0, 1))]))
     dem.add_particles(np.array([[0, 0, D / 2]]), D, RHO, vel=np.array([[vt, 0, -vn]]))
     dt = contact_time(KN, e, M) / 100
@@ -82,7 +82,7 @@ def test_sliding_wall_impact_matches_coulomb_impulse(law):
 @pytest.mark.parametrize("integrator", ["rk2", "verlet"])
 def test_sliding_sphere_ends_rolling_at_five_sevenths(law, integrator):
     mu, v0, g = 0.3, 0.1, 9.81
-    p = DEMParams(contact_model=law, kn=KN, restitution_pw=0.5, friction_pw=mu, gravity=g, integrator=integrator)
+    p = DEMParams(contact_model=law, stiffness=KN, restitution_pw=0.5, friction_pw=mu, gravity=g, integrator=integrator)
     dem = DEM(p, walls=Walls(planes=[((0, 0, 0), (0, 0, 1))]))
     dem.add_particles(np.array([[0, 0, D / 2 - M * g / KN]]), D, RHO, vel=np.array([[v0, 0, 0]]))
     t_slip = 2 * v0 / (7 * mu * g)

@@ -18,7 +18,7 @@ def on_incline(law, mu, angle_deg, t_end=0.05):
     """A non-rotating sphere released at rest on a plane tilted by `angle` about y; returns (displacement, velocity)."""
     a = math.radians(angle_deg)
     normal = (math.sin(a), 0.0, math.cos(a))  # plane through 0; downhill is +x along the plane
-    p = DEMParams(contact_model=law, kn=KN, friction_pw=mu, restitution_pw=0.5, rotation=False, gravity=G)
+    p = DEMParams(contact_model=law, stiffness=KN, friction_pw=mu, restitution_pw=0.5, rotation=False, gravity=G)
     dem = DEM(p, walls=Walls(planes=[((0, 0, 0), normal)]))
     rest = D / 2 - M * G * math.cos(a) / KN
     x0 = np.array(normal) * rest
@@ -100,7 +100,7 @@ def test_history_survives_insertion_and_removal():
 def test_registries_and_bad_input():
     assert {"linear", "linear-history"} <= set(CONTACT_LAWS.names())
     assert {"rk2", "verlet"} <= set(INTEGRATORS.names())
-    with pytest.raises(ValueError, match="contact law"):
+    with pytest.raises(ValueError, match=r"contact_model = 'hertz' \(contact.model\): expected one of 'linear'"):
         DEM(DEMParams(contact_model="hertz"))
     with pytest.raises(ValueError, match="integrator"):
         DEM(DEMParams(integrator="euler"))
@@ -110,7 +110,7 @@ def test_registries_and_bad_input():
         DEM(DEMParams(dim=1))
     law = get_law("linear")
     assert contact_time(KN, 1.0, M / 2) == pytest.approx(math.pi * math.sqrt(M / 2 / KN), rel=1e-14)
-    dem = DEM(DEMParams(contact_model="linear", kn=KN, restitution_pp=0.9, restitution_pw=0.9))
+    dem = DEM(DEMParams(contact_model="linear", stiffness=KN, restitution_pp=0.9, restitution_pw=0.9))
     dem.add_particles(np.zeros((1, 3)), D, RHO)
     assert dem.critical_time() == pytest.approx(contact_time(KN, 0.9, M / 2), rel=1e-12)
     assert dem.dt == pytest.approx(dem.critical_time() / 6)
@@ -121,7 +121,7 @@ def test_registries_and_bad_input():
 def test_regularised_coulomb_stops_but_never_reverses_slip(integrator):
     """`linear`: a slow slide under strong friction decays (by half per step: the cap m |u_t| / dt is applied over
     dt from the predicted/midpoint slip); the slip never changes sign."""
-    p = DEMParams(contact_model="linear", kn=KN, friction_pw=1.0, restitution_pw=0.5, rotation=False, gravity=G,
+    p = DEMParams(contact_model="linear", stiffness=KN, friction_pw=1.0, restitution_pw=0.5, rotation=False, gravity=G,
                   integrator=integrator)  # fmt: skip
     dem = DEM(p, walls=Walls(planes=[((0, 0, 0), (0, 0, 1))]))
     dem.add_particles(np.array([[0, 0, D / 2 - M * G / KN]]), D, RHO, vel=np.array([[1e-5, 0, 0]]))

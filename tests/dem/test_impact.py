@@ -13,7 +13,7 @@ D, RHO, KN, U0 = 1e-3, 2500.0, 1000.0, 0.1
 
 def impact(e, factor, integrator="rk2", record=False):
     """Normal impact on the plane z = 0 starting at first touch; returns (restitution, t, delta, u) arrays."""
-    p = DEMParams(contact_model="linear", kn=KN, restitution_pw=e, friction_pw=0.0, gravity=0.0,
+    p = DEMParams(contact_model="linear", stiffness=KN, restitution_pw=e, friction_pw=0.0, gravity=0.0,
                   integrator=integrator, rotation=False)  # fmt: skip
     dem = DEM(p, walls=Walls(planes=[((0, 0, 0), (0, 0, 1))]))
     dem.add_particles(np.array([[0.0, 0.0, 0.5 * D]]), D, RHO, vel=np.array([[0.0, 0.0, -U0]]))

@@ -18,7 +18,7 @@ def solid_fraction(pos, lo, hi, samples=200_000, seed=0):
 
 
 def pour(n, width):
-    p = DEMParams(contact_model="linear-history", kn=1000.0, restitution_pp=0.5, restitution_pw=0.5,
+    p = DEMParams(contact_model="linear-history", stiffness=1000.0, restitution_pp=0.5, restitution_pw=0.5,
                   friction_pp=0.3, friction_pw=0.3, integrator="verlet")  # fmt: skip
     height = n * np.pi / 6 * D**3 / 0.25 / width**2
     box_hi = [width, width, 2 * height]

@@ -38,7 +38,7 @@ def grid_quads(n, h, z=0.0):
 
 
 def force_on(walls, pos, law="linear"):
-    dem = DEM(DEMParams(contact_model=law, kn=KN, gravity=0.0), walls=walls)
+    dem = DEM(DEMParams(contact_model=law, stiffness=KN, gravity=0.0), walls=walls)
     dem.add_particles(np.atleast_2d(pos), D, RHO)
     dem.compute_forces()
     return dem.particles.force[0].copy()
@@ -102,7 +102,7 @@ def closed_cube(side, n):
 def test_fast_particles_never_leak_from_a_faceted_cube():
     side = 8e-3
     walls = Walls(facets=closed_cube(side, 4))
-    p = DEMParams(contact_model="linear-history", kn=1e5, restitution_pp=1.0, restitution_pw=1.0, gravity=0.0,
+    p = DEMParams(contact_model="linear-history", stiffness=1e5, restitution_pp=1.0, restitution_pw=1.0, gravity=0.0,
                   friction_pp=0.2, friction_pw=0.2, integrator="verlet")  # fmt: skip
     dem = DEM(p, walls=walls)
     n = 60
@@ -128,7 +128,7 @@ def cylinder_facets(tmp_path):
 def pour_into_cylinder(tmp_path, n, d, t_end):
     facets = cylinder_facets(tmp_path)
     assert facets.shape[1] == 3 and facets.shape[0] > 500
-    p = DEMParams(contact_model="linear-history", kn=1e5, restitution_pp=0.5, restitution_pw=0.5,
+    p = DEMParams(contact_model="linear-history", stiffness=1e5, restitution_pp=0.5, restitution_pw=0.5,
                   friction_pp=0.3, friction_pw=0.3, integrator="rk2")  # fmt: skip
     dem = DEM(p, walls=Walls(facets=facets))
     h = 0.025 / np.sqrt(2) - 1e-3
@@ -204,7 +204,7 @@ def test_state_restored_with_other_walls_drops_only_the_wall_history():
     from before the bounding-box planes), the wall lists and history are dropped, the pair history kept."""
     side = 8e-3
     quads = closed_cube(side, 4)
-    p = DEMParams(contact_model="linear-history", kn=1e4, friction_pp=0.5, friction_pw=0.5, integrator="verlet",
+    p = DEMParams(contact_model="linear-history", stiffness=1e4, friction_pp=0.5, friction_pw=0.5, integrator="verlet",
                   restitution_pp=0.1, restitution_pw=0.1)  # fmt: skip
     a = DEM(p, walls=Walls(facets=quads))
     vel = np.random.default_rng(4).normal(0, 0.3, (30, 3))
@@ -230,7 +230,7 @@ def test_state_restored_with_another_skin_rebuilds_the_lists_and_keeps_the_histo
     new skin, the contact history carried by keys, and the particles move exactly as without the change."""
     side = 8e-3
     quads = closed_cube(side, 4)
-    kw = dict(contact_model="linear-history", kn=1e4, friction_pp=0.5, friction_pw=0.5, integrator="verlet",
+    kw = dict(contact_model="linear-history", stiffness=1e4, friction_pp=0.5, friction_pw=0.5, integrator="verlet",
               restitution_pp=0.1, restitution_pw=0.1)  # fmt: skip
     a = DEM(DEMParams(skin=0.1, **kw), walls=Walls(facets=quads))
     vel = np.random.default_rng(4).normal(0, 0.3, (30, 3))

@@ -50,7 +50,7 @@ def channel_solver(md, velocity, rho=1.0, mu=0.1, eps=1.0, slip=False, **kw) -> 
         "walls": BoundarySpec("wall", slip=slip),
         "outlet": BoundarySpec("outlet", pressure=0.0),
     }
-    par = VANSParameters(density=rho, viscosity=mu, dt_max=1.0, boundaries=bcs, **kw)
+    par = VANSParameters(gravity=0.0, density=rho, viscosity=mu, dt_max=1.0, boundaries=bcs, **kw)
     return VANSSolver(md, par, eps=eps)
 
 

@@ -75,7 +75,7 @@ def _porous_channel(ny, law, slip=False):
     md = channel(0.06, 0.015, 4 * ny, ny)
     wall = BoundarySpec("wall", slip=True) if slip else BoundarySpec("wall", wall_law=law)
     bcs = {"inlet": BoundarySpec("inlet", velocity=U), "walls": wall, "outlet": BoundarySpec("outlet", pressure=0.0)}
-    s = VANSSolver(md, VANSParameters(density=RHO, viscosity=MU, dt_max=2e-4, boundaries=bcs), eps=EPS)
+    s = VANSSolver(md, VANSParameters(gravity=0.0, density=RHO, viscosity=MU, dt_max=2e-4, boundaries=bcs), eps=EPS)
     s.q[:, 0] = U
     for _ in range(300):
         info = s.step(s.compute_dt(), K=ergun_K(np.linalg.norm(s.u, axis=1), s.eps))
@@ -107,7 +107,7 @@ def test_clear_gas_wall_law_is_no_slip():
     L, H, Um, mu = 3.0, 1.0, 1.0, 0.1
     md = channel(L, H, 48, 16)
     bcs = {"inlet": BoundarySpec("inlet", velocity=Um), "walls": BoundarySpec("wall"), "outlet": BoundarySpec("outlet")}
-    s = VANSSolver(md, VANSParameters(density=1.0, viscosity=mu, dt_max=1.0, boundaries=bcs))
+    s = VANSSolver(md, VANSParameters(gravity=0.0, density=1.0, viscosity=mu, dt_max=1.0, boundaries=bcs))
     comm = MPI.COMM_WORLD
     law_nodes = comm.allreduce(int((s.bc.law_nodes < s.n_owned).sum()))
     assert law_nodes == 2 * 47  # every wall node but the inlet's and the outlet's corners

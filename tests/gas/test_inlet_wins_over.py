@@ -30,7 +30,9 @@ def _solver(md, law="brinkman", **inlet) -> VANSSolver:
         "walls": BoundarySpec("wall", wall_law=law),
         "outlet": BoundarySpec("outlet"),
     }
-    return VANSSolver(md, VANSParameters(density=1.0, viscosity=1e-3, dt_max=1e-3, boundaries=bcs), eps=1.0)
+    return VANSSolver(
+        md, VANSParameters(gravity=0.0, density=1.0, viscosity=1e-3, dt_max=1e-3, boundaries=bcs), eps=1.0
+    )
 
 
 @pytest.fixture(scope="module")

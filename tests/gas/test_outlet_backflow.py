@@ -25,7 +25,9 @@ def run_jet(backflow, t_end):
         "walls": BoundarySpec("wall"),
         "outlet": BoundarySpec("outlet"),
     }
-    s = VANSSolver(md, VANSParameters(density=1.28, viscosity=1.7e-5, dt_max=2e-4, boundaries=bcs, backflow=backflow))
+    s = VANSSolver(
+        md, VANSParameters(gravity=0.0, density=1.28, viscosity=1.7e-5, dt_max=2e-4, boundaries=bcs, backflow=backflow)
+    )
     x = s.x
     region = x[:, 0] < 0.15
     force = np.zeros((s.n_local, 2))

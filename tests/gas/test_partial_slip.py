@@ -22,7 +22,7 @@ def _solver(md, slip_length, eps=1.0):
         "walls": BoundarySpec("wall", slip=True, slip_length=slip_length),
         "outlet": BoundarySpec("outlet", pressure=0.0),
     }
-    return VANSSolver(md, VANSParameters(density=1.0, viscosity=MU, dt_max=1.0, boundaries=bcs), eps=eps)
+    return VANSSolver(md, VANSParameters(gravity=0.0, density=1.0, viscosity=MU, dt_max=1.0, boundaries=bcs), eps=eps)
 
 
 def _gather(s, sel, a):
@@ -66,7 +66,7 @@ def test_slip_length_limits():
         "huge": BoundarySpec("wall", slip=True, slip_length=1e6 * H),
     }.items():
         bcs = {"inlet": BoundarySpec("inlet", velocity=U), "walls": spec, "outlet": BoundarySpec("outlet")}
-        s = VANSSolver(md, VANSParameters(density=1.0, viscosity=MU, dt_max=1.0, boundaries=bcs))
+        s = VANSSolver(md, VANSParameters(gravity=0.0, density=1.0, viscosity=MU, dt_max=1.0, boundaries=bcs))
         for _ in range(1500):
             s.step(s.compute_dt())
         x = owned(s, s.x)

@@ -17,7 +17,9 @@ def box_solver(n, **kw):
         MPI.COMM_WORLD, [[-A, -A], [A, A]], [n, n], dolfinx.mesh.CellType.quadrilateral
     )
     md = tagged_mesh(mesh, {"walls": lambda x: np.full(x.shape[1], True)})
-    par = VANSParameters(density=1.0, dt_max=1.0, boundaries={"walls": BoundarySpec("wall", slip=True)}, **kw)
+    par = VANSParameters(
+        gravity=0.0, density=1.0, dt_max=1.0, boundaries={"walls": BoundarySpec("wall", slip=True)}, **kw
+    )
     return VANSSolver(md, par)
 
 

@@ -26,7 +26,7 @@ def run_tg(n, dt, t_end, cell=dolfinx.mesh.CellType.quadrilateral):
     mesh = dolfinx.mesh.create_rectangle(MPI.COMM_WORLD, [[-A, -A], [A, A]], [n, n], cell)
     md = tagged_mesh(mesh, {"walls": lambda x: np.full(x.shape[1], True)})
     bcs = {"walls": BoundarySpec("wall", slip=True)}
-    par = VANSParameters(density=1.0, viscosity=NU, dt_max=1.0, pressure_rtol=1e-10, boundaries=bcs)
+    par = VANSParameters(gravity=0.0, density=1.0, viscosity=NU, dt_max=1.0, pressure_rtol=1e-10, boundaries=bcs)
     s = VANSSolver(md, par)
     s.q[:] = exact_u(s.x, 0.0)
     s.set_void_fraction(1.0)

@@ -57,7 +57,7 @@ def node_keys(ma, rows):
 def test_projection_and_interpolation_on_2_ranks_equal_serial():
     mesh = box(COMM)
     ma = extract_mesh_arrays(mesh)
-    dem = DEM(DEMParams(kn=1000.0), walls=Walls.box([0, 0, 0], [LX, LY, LZ]))
+    dem = DEM(DEMParams(stiffness=1000.0), walls=Walls.box([0, 0, 0], [LX, LY, LZ]))
     rng = np.random.default_rng(4)
     k = np.arange(1500)
     lattice = (np.stack([k % 15, (k // 15) % 15, k // 225], axis=1) + 0.7) * [1.25 * D, 1.25 * D, 5 * D]
@@ -142,7 +142,7 @@ def test_coupled_substeps_in_a_frozen_gas_on_2_ranks_match_serial():
     ma1 = extract_mesh_arrays(mesh1)
 
     def make():
-        dem = DEM(DEMParams(kn=1000.0, restitution_pp=0.8), walls=Walls.box([0, 0, 0], [LX, LY, LZ]))
+        dem = DEM(DEMParams(stiffness=1000.0, restitution_pp=0.8), walls=Walls.box([0, 0, 0], [LX, LY, LZ]))
         rng = np.random.default_rng(9)
         k = np.arange(800)
         lattice = (np.stack([k % 10, (k // 10) % 10, k // 100], axis=1) + 0.8) * [1.8 * D, 1.8 * D, 4.5 * D]

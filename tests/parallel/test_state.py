@@ -11,7 +11,7 @@ BOX = [6 * D, 6 * D, 30 * D]
 
 
 def make(integrator):
-    p = DEMParams(contact_model="linear-history", kn=1000.0, restitution_pp=0.5, restitution_pw=0.5,
+    p = DEMParams(contact_model="linear-history", stiffness=1000.0, restitution_pp=0.5, restitution_pw=0.5,
                   friction_pp=0.3, friction_pw=0.3, integrator=integrator, sort_every=3)  # fmt: skip
     return DEM(p, walls=Walls.box([0, 0, 0], BOX))
 
