@@ -9,7 +9,8 @@ DEB_PKGS := python3-dolfinx python3-petsc4py python3-mpi4py python3-numba python
 # root needs sudo-less apt and mpirun --allow-run-as-root; a normal user needs sudo for apt only.
 IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
 SUDO    := $(if $(IS_ROOT),,sudo)
-MPIRUN  := mpirun $(if $(IS_ROOT),--allow-run-as-root) --oversubscribe -n 2
+MPIEXEC := mpirun $(if $(IS_ROOT),--allow-run-as-root) --oversubscribe
+MPIRUN  := $(MPIEXEC) -n 2
 PYTEST  := $(PY) -m pytest
 # $(call apt_ensure,PACKAGES): apt-get install those of the Debian PACKAGES that are not installed yet.
 apt_ensure = missing=""; for p in $(1); do \
@@ -21,7 +22,7 @@ apt_ensure = missing=""; for p in $(1); do \
 	fi
 export OMPI_MCA_rmaps_base_oversubscribe := 1
 
-.PHONY: setup demo test test-serial test-mpi test-all bench lint docs clean
+.PHONY: setup demo test test-serial test-mpi test-ranks test-all bench lint docs clean
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml
@@ -39,10 +40,18 @@ test: setup lint test-serial test-mpi
 test-serial: setup
 	$(PYTEST) -m "not slow"
 
+# The MPI tests on 2 ranks, and the many-rank tests (partition corners, restarts onto fewer ranks) on 4.
 test-mpi: setup
 	$(MPIRUN) $(PY) -m pytest -m "mpi and not slow" -q --color=no
+	$(MPIEXEC) -n 4 $(PY) -m pytest -m "mpi and not slow" -q --color=no tests/parallel/test_many_ranks.py
 
-test-all: setup
+# The distributed particle tests on 3, 4 and 8 ranks (oversubscribed), and the 4 -> 2 -> 1 restart through `febed run`.
+test-ranks: setup
+	for n in 3 4; do $(MPIEXEC) -n $$n $(PY) -m pytest -m mpi -q --color=no tests/parallel || exit 1; done
+	$(MPIEXEC) -n 8 $(PY) -m pytest -m mpi -q --color=no tests/parallel/test_mpi_dem.py tests/parallel/test_many_ranks.py
+	$(PYTEST) -m slow tests/parallel/test_many_ranks.py
+
+test-all: setup test-ranks
 	$(PYTEST)
 	$(MPIRUN) $(PY) -m pytest -m mpi -q --color=no
 

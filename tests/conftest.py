@@ -3,6 +3,7 @@
 import gc
 import logging
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -21,6 +22,22 @@ def mpi_tmp_path():
     comm.barrier()
     if comm.rank == 0:
         shutil.rmtree(path, ignore_errors=True)
+
+
+def pytest_runtest_logreport(report):
+    """Under mpirun, a test that fails stops every rank at once (MPI Abort) with its report.
+
+    A failure on some ranks only would leave the others waiting in their next collective call until the job's
+    time limit; the whole run stops instead, naming the test and the rank.
+    """
+    comm = MPI.COMM_WORLD
+    if comm.size > 1 and report.failed:
+        sys.stderr.write(
+            f"\n{report.nodeid} failed ({report.when}) on rank {comm.rank} of {comm.size}: stopping every rank\n"
+            f"{report.longrepr}\n"
+        )
+        sys.stderr.flush()
+        comm.Abort(1)
 
 
 @pytest.fixture(autouse=True)

@@ -4,6 +4,6 @@ The DEM and the coupling stay unaware of ranks; they meet MPI only through `Part
 """
 
 from febed.parallel.exchange import ParticleExchange
-from febed.parallel.partition import cell_owners, slab_partitioner
+from febed.parallel.partition import block_partitioner, cell_owners, slab_partitioner
 
-__all__ = ["ParticleExchange", "cell_owners", "slab_partitioner"]
+__all__ = ["ParticleExchange", "block_partitioner", "cell_owners", "slab_partitioner"]

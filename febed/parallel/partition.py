@@ -21,12 +21,14 @@ def cell_owners(mesh) -> np.ndarray:
 def slab_partitioner(period: int | None = None):
     """A DOLFINx cell partitioner giving rank r the r-th block of global cell indices, with ghosts.
 
-    On `dolfinx.mesh.create_box` hexahedra/quadrilaterals the blocks are slabs across the slowest index (z in 3D,
-    y in 2D), so the partition boundaries are known planes (for tests and reproducible benchmarks). With
-    `period` = the number of cells along x, the blocks are taken of the index modulo `period`: slabs across x.
+    The blocks are slabs across the slowest cell index, so the partition boundaries are known planes (for tests
+    and reproducible benchmarks): z = const on `dolfinx.mesh.create_box` hexahedra (x fastest), x = const on
+    `dolfinx.mesh.create_rectangle` quadrilaterals (y fastest). With `period` = the number of cells along the
+    fastest axis (x in 3D, y in 2D), the blocks are taken of the index modulo `period`: slabs across that axis.
+    `block_partitioner` cuts along several axes at once.
     """
     if period is not None and period < 1:
-        raise ValueError(f"period: must be >= 1 (cells along x), got {period}")
+        raise ValueError(f"period: must be >= 1 (cells along the fastest axis: x in 3D, y in 2D), got {period}")
     import dolfinx.mesh
     from dolfinx import cpp
 
@@ -46,6 +48,64 @@ def slab_partitioner(period: int | None = None):
             if ghosting:
                 for nb in graph.links(c):
                     r = int(owner(int(nb)))
+                    if r not in d:
+                        d.append(r)
+            data += d
+            offs.append(len(data))
+        return cpp.graph.AdjacencyList_int32(np.array(data, dtype=np.int32), np.array(offs, dtype=np.int32))
+
+    return dolfinx.mesh.create_cell_partitioner(part)
+
+
+def block_partitioner(cells, blocks):
+    """A DOLFINx cell partitioner cutting a `dolfinx.mesh.create_box`/`create_rectangle` mesh into a grid of blocks.
+
+    cells: cells along each axis of the mesh, (nx, ny, nz) or (nx, ny); blocks: blocks along each axis, e.g.
+    (2, 2, 1) for four columns meeting at a line, (2, 2, 2) for eight blocks meeting at a point, or
+    `mpi4py.MPI.Compute_dims(nranks, 3)` for any rank count. Block (bx, by, bz) goes to rank
+    (bz * blocks_y + by) * blocks_x + bx (by * blocks_x + bx in 2D); the mesh must be partitioned on as many ranks
+    as there are blocks. Block bx holds the cells [bx * nx // blocks_x, (bx + 1) * nx // blocks_x) along x, and so
+    on: where nx is a multiple of blocks_x, the partition boundaries are the planes x = k lx / blocks_x (for tests
+    and benchmarks whose particles must sit at partition corners).
+
+    Raises ValueError for cells and blocks of different lengths or more blocks than cells along an axis, and (at
+    the partitioning) when the number of blocks is not the number of ranks.
+    """
+    cells = [int(c) for c in cells]
+    blocks = [int(b) for b in blocks]
+    if len(cells) not in (2, 3) or len(blocks) != len(cells):
+        raise ValueError(f"cells, blocks: need 2 or 3 numbers each, one per axis, got {cells} and {blocks}")
+    if min(cells) < 1 or min(blocks) < 1 or any(b > c for b, c in zip(blocks, cells, strict=True)):
+        raise ValueError(f"blocks: need 1 <= blocks <= cells along each axis, got blocks {blocks} for cells {cells}")
+    import dolfinx.mesh
+    from dolfinx import cpp
+
+    nb = int(np.prod(blocks))
+
+    fastest_first = [1, 0] if len(cells) == 2 else [0, 1, 2]  # create_rectangle: y fastest; create_box: x fastest
+    stride = np.cumprod([1] + blocks[:-1])  # rank = sum over axes of block index * stride
+
+    def owner(c):
+        """Rank of global cell indices c, in the order create_box/create_rectangle number the cells."""
+        rank = np.zeros_like(c)
+        for a in fastest_first:
+            rank += (c % cells[a]) * blocks[a] // cells[a] * stride[a]
+            c = c // cells[a]
+        return rank
+
+    def part(comm, nparts, graph, ghosting):
+        if nparts != nb:
+            raise ValueError(f"blocks: {blocks} make {nb} blocks, but the mesh is partitioned on {nparts} ranks")
+        n = graph.num_nodes
+        off = comm.exscan(n) or 0
+        own = owner(np.arange(off, off + n, dtype=np.int64))
+        data = []
+        offs = [0]
+        for c in range(n):
+            d = [int(own[c])]
+            if ghosting:
+                for nbr in graph.links(c):
+                    r = int(owner(np.int64(nbr)))
                     if r not in d:
                         d.append(r)
             data += d
