@@ -1,0 +1,258 @@
+"""Measured loads and times of a coupled run window, per rank: the validation data of `scaling_projection.py`.
+
+Continues a run folder's newest checkpoint (a bubbling bed) for a warm-up and a timed window and writes, per
+rank, the owned and ghost particles, listed pairs, owned and local gas nodes, gas steps, DEM sub-steps, pair
+list builds, and the wall and CPU seconds of the window with the solver's split DEM / coupling / gas / output
+in CPU seconds of each rank, to benchmarks/out/measured_<case>_P<ranks>[<tag>].json. Run it serially and on
+2 ranks on the same checkpoint:
+
+    [mpirun -n 2] python benchmarks/scaling_measure.py --restart RUN_DIR [--case demos/pseudo2d/C2.toml]
+        [--warmup 0.004] [--sim-time 0.01] [--set KEY=VALUE ...] [--tag NAME] [--rebuilds N]
+    mpirun -n 2 python benchmarks/scaling_measure.py --pingpong
+
+`--rebuilds N` then times N pair-list rebuilds (fastest and median); serially also N rebuilds that restore
+the contact history by key, as every rank's rebuild does on several ranks, and the locating of every
+particle: the parallel rebuild's own work, on one core. `--pingpong` measures instead, between two ranks of
+this machine (shared memory), the latency, the bandwidth and an 8-byte allreduce, and the MPI calls of a
+ghost update and of a rebuild's exchanges, emulated with `--ghosts` rows and `--movers` leaving particles.
+
+CPU seconds are the measure to use serially on a machine shared with other jobs: a descheduled process
+loses wall time, not CPU time. On several ranks they are not: a rank waiting for a descheduled partner
+polls, and its waiting counts as CPU time too.
+"""
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+
+import febed.solver
+from febed.case import load_case
+from febed.coupling.locate import locate
+from febed.io.checkpoint import load_checkpoint
+from febed.io.rundir import get_logger
+from febed.run import CoupledRun
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _CpuClock:
+    """Stands in for the `time` module in `febed.solver`: its timers then add up CPU seconds of this process."""
+
+    perf_counter = staticmethod(time.process_time)
+
+
+def loads(s) -> dict:
+    """This rank's load now: particles, ghosts, listed pairs, gas nodes."""
+    P = s.dem.particles
+    return {
+        "owned": int(P.n_owned),
+        "ghosts": int(P.n_ghost),
+        "pairs": int(s.dem.pairs.size),
+        "nodes_owned": int(s.ma.num_owned_dofs),
+        "nodes_local": int(s.ma.num_dofs),
+        "cells_owned": int(s.ma.num_owned_cells),
+    }
+
+
+def _timed(comm, fn, reps: int) -> tuple[float, float]:
+    """(minimum, median) seconds of fn() over reps calls, each started together on every rank."""
+    import numpy as np
+
+    t = np.empty(reps)
+    for k in range(reps):
+        comm.Barrier()
+        t0 = time.perf_counter()
+        fn()
+        t[k] = time.perf_counter() - t0
+    comm.Allreduce(MPI.IN_PLACE, t, op=MPI.MAX)  # a call ends when its slowest rank does
+    return float(t.min()), float(np.median(t))
+
+
+def pingpong(comm, ghosts: int, movers: int) -> None:
+    """Message costs between ranks 0 and 1 and of febed's ghost update and rebuild exchanges, emulated.
+
+    The minimum over many repetitions is the cost of the calls themselves (no rank descheduled meanwhile);
+    the median shows what a shared machine adds.
+    """
+    import numpy as np
+
+    if comm.size != 2:
+        raise SystemExit("--pingpong: run on 2 ranks (mpirun -n 2)")
+    other = 1 - comm.rank
+
+    def roundtrip(buf):
+        def go():
+            if comm.rank == 0:
+                comm.Send(buf, dest=1)
+                comm.Recv(buf, source=1)
+            else:
+                comm.Recv(buf, source=0)
+                comm.Send(buf, dest=0)
+
+        return go
+
+    small = _timed(comm, roundtrip(np.zeros(8, dtype=np.uint8)), 2000)
+    big = _timed(comm, roundtrip(np.zeros(4 << 20, dtype=np.uint8)), 40)
+    x = np.zeros(1)
+    red = _timed(comm, lambda: comm.Allreduce(MPI.IN_PLACE, x), 2000)
+    sb, rb = np.zeros((ghosts, 6)), np.zeros((ghosts, 6))
+    red2 = np.zeros(2)
+
+    def update():  # ExchangeParticles.update_ghosts: the rebuild test's reduction and one message each way
+        reqs = [
+            comm.Iallreduce(red2[:1], red2[1:], op=MPI.MAX),
+            comm.Irecv(rb, source=other, tag=13),
+            comm.Isend(sb, dest=other, tag=13),
+        ]
+        MPI.Request.Waitall(reqs)
+
+    upd = _timed(comm, update, 2000)
+    fb, ib = np.zeros((ghosts, 12)), np.zeros((ghosts, 3), dtype=np.int64)
+    rfb, rib = np.zeros_like(fb), np.zeros_like(ib)
+    rows = {f"f{k}": np.zeros((movers, 3)) for k in range(12)}
+
+    def rebuild():  # migrate (reductions, alltoall of the leaving rows) and refresh_ghosts
+        for _ in range(4):
+            comm.allreduce(1.0, op=MPI.MAX)
+        comm.alltoall([None if r == comm.rank else {"rows": rows} for r in range(2)])
+        counts, recv = np.array([ghosts, ghosts], dtype=np.int64), np.zeros(2, dtype=np.int64)
+        comm.Alltoall(counts, recv)
+        reqs = [
+            comm.Irecv(rfb, source=other, tag=11),
+            comm.Irecv(rib, source=other, tag=12),
+            comm.Isend(fb, dest=other, tag=11),
+            comm.Isend(ib, dest=other, tag=12),
+        ]
+        MPI.Request.Waitall(reqs)
+
+    reb = _timed(comm, rebuild, 300)
+    if comm.rank == 0:
+        us = [small[0] / 2 * 1e6, small[1] / 2 * 1e6]
+        bw = [(4 << 20) / (b / 2) / 1e9 for b in big]
+        print(f"latency {us[0]:.2f} µs (8 B, half the fastest round trip; median {us[1]:.2f})")
+        print(f"bandwidth {bw[0]:.2f} GB/s (4 MB, fastest; median {bw[1]:.2f})")
+        print(f"allreduce of 8 B on 2 ranks: {red[0] * 1e6:.2f} µs (median {red[1] * 1e6:.2f})")
+        print(f"ghost update, {ghosts} rows each way + reduction: {upd[0] * 1e6:.1f} µs (median {upd[1] * 1e6:.1f})")
+        print(
+            f"rebuild exchanges, {movers} leaving, {ghosts} ghosts: {reb[0] * 1e6:.0f} µs (median {reb[1] * 1e6:.0f})"
+        )
+
+
+def timed_calls(comm, fn, reps: int) -> list[float]:
+    """(fastest, median) seconds of this rank's own part of reps calls of fn, each started together.
+
+    CPU seconds on one process (nothing to wait for), wall seconds on several.
+    """
+    clock = time.process_time if comm.size == 1 else time.perf_counter
+    t = np.empty(reps)
+    for k in range(reps):
+        comm.Barrier()
+        t0 = clock()
+        fn()
+        t[k] = clock() - t0
+    return [float(t.min()), float(np.median(t))]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--case", default=str(ROOT / "demos" / "pseudo2d" / "C2.toml"))
+    parser.add_argument("--restart", help="run folder (its newest checkpoint) or checkpoint file; default runs/C2")
+    parser.add_argument("--pingpong", action="store_true", help="measure the message latency and bandwidth instead")
+    parser.add_argument("--ghosts", type=int, default=2200, help="--pingpong: ghost rows per rank")
+    parser.add_argument("--movers", type=int, default=50, help="--pingpong: particles migrating per rebuild")
+    parser.add_argument("--warmup", type=float, default=0.004, help="simulated seconds before timing")
+    parser.add_argument("--sim-time", type=float, default=0.01, help="simulated seconds timed")
+    parser.add_argument("--set", action="append", default=[], help="case overrides KEY=VALUE (repeatable)")
+    parser.add_argument("--rebuilds", type=int, default=0, help="then time this many pair-list rebuilds")
+    parser.add_argument("--tag", default="", help="appended to the output file name")
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "out"))
+    args = parser.parse_args()
+    comm = MPI.COMM_WORLD
+    if args.pingpong:
+        pingpong(comm, args.ghosts, args.movers)
+        return
+    if not args.restart:
+        if not (ROOT / "runs" / "C2" / "checkpoints").is_dir():
+            if comm.rank == 0:
+                print(
+                    "skipped: give --restart RUN_DIR, a C2 run folder with a checkpoint (e.g. of "
+                    "`febed run demos/pseudo2d/C2.toml --set run.end_time=5`, which writes runs/C2)"
+                )
+            return
+        args.restart = str(ROOT / "runs" / "C2")
+    tmp = Path(comm.bcast(tempfile.mkdtemp(prefix="febed-measure-") if comm.rank == 0 else None, root=0))
+    quiet = [f"output.directory={tmp}", "output.field_interval=100", "output.particle_interval=100"]
+    case = load_case(args.case, quiet + args.set)
+    febed.solver.time = _CpuClock  # the solver's split DEM / coupling / gas / output in CPU seconds
+    log = get_logger(None, comm)
+    run = CoupledRun(case, tmp, log, comm, restart=load_checkpoint(Path(args.restart), comm))
+    s = run.solver
+    run.advance_to(s.t + args.warmup)
+    comm.barrier()
+    before = s.timers.as_dict()
+    steps0, builds0, dem0 = s.steps, s.dem.pairs.builds, s.dem.steps
+    start = loads(s)
+    w0, c0 = time.perf_counter(), time.process_time()
+    sim0 = s.t
+    samples = []
+    while s.t < sim0 + args.sim_time - 1e-12:
+        run.advance_to(min(s.t + 0.002, sim0 + args.sim_time))
+        samples.append(loads(s))
+    w1, c1 = time.perf_counter(), time.process_time()
+    comm.barrier()
+    after = s.timers.as_dict()
+    mine = {
+        "rank": comm.rank,
+        "t0": sim0,
+        "t1": s.t,
+        "wall": w1 - w0,
+        "cpu": c1 - c0,
+        "split": {k.removeprefix("wall_"): after[k] - before[k] for k in after},  # CPU seconds
+        "overrides": args.set,
+        "gas_steps": s.steps - steps0,
+        "dem_steps": int(s.dem.steps - dem0),
+        "builds": int(s.dem.pairs.builds - builds0),
+        "start": start,
+        "samples": samples,
+    }
+    if args.rebuilds:
+        mine["rebuild"] = timed_calls(comm, s.dem.rebuild, args.rebuilds)
+        mine["rebuild_loads"] = loads(s)
+        if comm.size == 1:  # the parallel rebuild's own work, on one core: history by key, locating every particle
+            dem = s.dem
+
+            def keyed():
+                dem.save_history()
+                dem.rebuild()
+
+            def locate_all():
+                P = dem.particles
+                locate(s.ma, P.pos[: P.n_owned], np.ascontiguousarray(P.cell[: P.n_owned], dtype=np.int32))
+
+            mine["rebuild_keyed"] = timed_calls(comm, keyed, args.rebuilds)
+            mine["locate"] = timed_calls(comm, locate_all, args.rebuilds)
+    every = comm.gather(mine, root=0)
+    if comm.rank == 0:
+        name = Path(args.case).stem
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        path = out / f"measured_{name}_P{comm.size}{args.tag}.json"
+        path.write_text(json.dumps({"case": name, "ranks": comm.size, "per_rank": every}, indent=1))
+        for m in every:
+            print(
+                f"rank {m['rank']}: wall {m['wall']:.1f} s, cpu {m['cpu']:.1f} s, {m['gas_steps']} gas steps, "
+                f"{m['dem_steps']} DEM steps, {m['builds']} builds; loads at the end {m['samples'][-1]}"
+            )
+        print(f"written {path}")
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

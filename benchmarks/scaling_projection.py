@@ -1,0 +1,408 @@
+"""Projected parallel efficiency of the pseudo-2D case C2 and its fine mesh at 2-64 ranks, from a census of the work.
+
+The census (`scaling_census.py`) repeats febed's decomposition on one process for P = 1, 2, 4, ..., 64 parts
+and counts, per rank, the owned and ghost particles, listed and force pairs, owned gas nodes and halo nodes,
+and the bytes sent per gas step, over particle snapshots of a bubbling bed. The model turns these into time
+with single-core costs per unit of work measured on the same bed (`scaling_measure.py`, serially, once with
+the serial pressure solver and once with the parallel one) and an interconnect of stated bandwidth and
+latency, takes the slowest rank of each phase (DEM, coupling, gas), and checks its 2-rank efficiency
+against a measured one of the same state and its loads against a 2-rank run (docs/scaling.md):
+
+    python benchmarks/scaling_measure.py --restart RUN_DIR                        # serial costs
+    python benchmarks/scaling_measure.py --restart RUN_DIR --warmup 0.001 --sim-time 0.001 --rebuilds 40 \
+        --tag _rebuild                                                            # rebuild costs
+    python benchmarks/scaling_measure.py --restart RUN_DIR --tag _gamg \
+        --set 'gas.petsc_options="-febed_pressure_pc_type gamg -febed_pressure_pc_gamg_square_graph 0"'
+    mpirun -n 2 python benchmarks/scaling_measure.py --restart RUN_DIR            # 2-rank check
+    mpirun -n 2 python benchmarks/scaling_measure.py --pingpong                   # shared-memory figures
+    python benchmarks/scaling_projection.py --run RUN_DIR [--from 4.0 --to 4.5] [--bandwidth 10e9 --latency 2e-6]
+
+RUN_DIR is a C2 run folder (`febed run demos/pseudo2d/C2.toml`, at least to t = 4.5 s with the default
+particle output every 0.02 s, plus its checkpoint for the measurements). The census is cached in
+benchmarks/out/scaling_census.npz; without `--run` the cached census is used. Writes
+benchmarks/out/scaling_projection.png and benchmarks/out/scaling_projection.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import scaling_census as sc  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "benchmarks" / "out"
+RANKS = (1, 2, 4, 8, 16, 32, 64)
+MESHES = {"C2": "demos/pseudo2d/C2.toml", "C3": "demos/pseudo2d/C3.toml"}  # intermediate and fine mesh
+UPDATE_BYTES = 6 * 8  # a ghost update row: pos, vel (no rotation; 9 doubles with rotation)
+REFRESH_BYTES = 12 * 8 + 3 * 8  # a ghost refresh row (exchange.refresh_ghosts): 12 doubles, 3 integers
+MIGRATE_BYTES = 342  # a migrating particle: every per-particle array (the DEM's 342 B per particle)
+GAS_EXCHANGES = 30  # halo exchanges per gas step (field scatters and pressure CG iterations) ...
+GAS_VALUES = 1.7  # ... of this many doubles per halo node on average
+GAS_REDUCTIONS = 30  # global reductions per gas step (CFL, mass balance, CG dot products)
+# Measured on 2 ranks of one machine (scaling_measure.py --pingpong, fastest of many): the calls of a ghost
+# update (2,200 rows each way and the rebuild test's reduction) and of a rebuild's exchanges (migration,
+# ghost refresh), shared memory; over a network the model adds latency and bytes / bandwidth on top.
+UPDATE_CALLS = 17e-6
+REBUILD_CALLS = 141e-6
+# Documented 1 -> 2 rank measurements of C2 on the same machine with nothing else running
+# (docs/performance-history.csv): a 0.01 s window of a state whose particles split 25,501 / 31,795 (the
+# checkpoint's 25,539 / 31,757), and a 1 s window of a bubbling bed (particles max/mean 1.116 on average).
+DOCUMENTED = {"0.01 s window, same split of the particles": 0.76, "1 s window, bubbling bed": 0.81}
+
+
+def snapshots(run: Path, t0: float, t1: float) -> list[tuple[float, Path]]:
+    """(time, file) of the run's particle snapshots with t0 <= t <= t1 (from particles/particles.pvd)."""
+    pvd = run / "particles" / "particles.pvd"
+    if not pvd.is_file():
+        raise SystemExit(f"--run {run}: no particles/particles.pvd (a febed run folder with particle output)")
+    got = [(float(d.get("timestep")), pvd.parent / d.get("file")) for d in ET.parse(pvd).getroot().iter("DataSet")]
+    got = [(t, f) for t, f in got if t0 - 1e-9 <= t <= t1 + 1e-9]
+    if len(got) < 2:
+        raise SystemExit(f"--run {run}: fewer than 2 particle snapshots between t = {t0} and {t1} s")
+    return got
+
+
+def take_census(run: Path, t0: float, t1: float, skin_ratio: float) -> dict:
+    """Per mesh, P and snapshot: the census arrays (see `scaling_census`), and the checkpoint's census."""
+    from febed.io.checkpoint import latest_valid
+    from febed.io.particles import read_vtp
+
+    snaps = snapshots(run, t0, t1)
+    states = []
+    for t, f in snaps:
+        a = read_vtp(f)
+        order = np.argsort(a["gid"])  # rows in gid order: a particle's owner is followed from snapshot to snapshot
+        states.append((t, np.ascontiguousarray(a["Points"][order]), a["diameter"][order], a["gid"][order]))
+    ck = latest_valid(run / "checkpoints")
+    if ck is not None:
+        z = np.load(ck)
+        states.append((float(z["dem/time"]), np.ascontiguousarray(z["dem/p_pos"]), z["dem/p_diameter"], None))
+    out = {"times": [s[0] for s in states[: len(snaps)]], "checkpoint": ck is not None}
+    pairs = []
+    for _, pos, d, _ in states:
+        skin = skin_ratio * d.max()
+        pairs.append((skin, sc.all_pairs(pos, d, skin)))
+    for name, path in MESHES.items():
+        mesh = sc.case_mesh(ROOT / path, OUT / "mesh")
+        h = [min(np.diff(a).min() for a in mesh.axes)]
+        out[f"{name}/h_min"] = h[0]
+        for P in RANKS:
+            owner = sc.partition(mesh, P)
+            for k, v in sc.node_census(mesh, owner, P).items():
+                out[f"{name}/{P}/{k}"] = v
+            width = 1.2 * (states[0][2].max() * (1 + skin_ratio))
+            halo = sc.HaloBins(mesh, owner, P, width)
+            rows = []
+            prev = None
+            for (_, pos, d, gid), (skin, pr) in zip(states, pairs, strict=True):
+                c = sc.particle_census(mesh, owner, P, halo, pos, d, skin, pr)
+                c["migrated"] = np.zeros(P, dtype=np.int64)  # particles leaving each rank since the last snapshot
+                if prev is not None and gid is not None and np.array_equal(prev[0], gid):
+                    moved = prev[1] != c["powner"]
+                    c["migrated"] = np.bincount(prev[1][moved], minlength=P)
+                prev = (gid, c["powner"])
+                rows.append(c)
+            for k in rows[0]:
+                if k != "powner":
+                    out[f"{name}/{P}/{k}"] = np.array([r[k] for r in rows])  # (snapshots [+ checkpoint], P)
+            print(f"census {name} P = {P}: done", flush=True)
+    return out
+
+
+def load_measured(name: str, P: int, tag: str = "") -> dict | None:
+    path = OUT / f"measured_{name}_P{P}{tag}.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None) -> dict:
+    """Single-core costs per unit of work from the serial measurements (CPU seconds of each phase).
+
+    m1: the serial run with its default pressure solver (a Cholesky factorisation on meshes of at most 50,000
+    nodes); m1_iter: the same window with the parallel runs' pressure solver (CG + GAMG) on one process, whose
+    gas cost per node is used for every run on several ranks and for meshes too large for the factorisation.
+    """
+    r = m1["per_rank"][0]
+    sim = r["t1"] - r["t0"]
+    split = r["split"]
+    loads = r["samples"]
+    pairs = np.mean([s["pairs"] for s in loads])
+    owned = np.mean([s["owned"] for s in loads])
+    nodes = loads[0]["nodes_owned"]
+    gas_iter = split["gas"]
+    if m1_iter is not None:
+        ri = m1_iter["per_rank"][0]
+        gas_iter = ri["split"]["gas"] * r["gas_steps"] / ri["gas_steps"]
+    keyed = locate = 0.0
+    if m1_rebuild is not None:
+        rb = m1_rebuild["per_rank"][0]
+        keyed = (rb["rebuild_keyed"][0] - rb["rebuild"][0]) / rb["rebuild_loads"]["pairs"]
+        locate = rb["locate"][0] / rb["rebuild_loads"]["owned"]
+    return {
+        "sim": sim,
+        "us_per_pair_keyed_rebuild": 1e6 * keyed,
+        "us_per_particle_locate": 1e6 * locate,
+        "gas_steps_per_s": r["gas_steps"] / sim,
+        "dem_steps_per_s": r["dem_steps"] / sim,
+        "builds_per_s": r["builds"] / sim,
+        "us_per_pair_step": 1e6 * split["dem"] / (r["dem_steps"] * pairs),
+        "us_per_node_step": 1e6 * split["gas"] / (r["gas_steps"] * nodes),
+        "us_per_particle_step": 1e6 * split["coupling"] / (r["gas_steps"] * owned),
+        "us_per_node_step_iter": 1e6 * gas_iter / (r["gas_steps"] * nodes),
+        "output_s_per_s": split.get("output", 0.0) / sim,
+        "pairs": pairs,
+        "nodes": nodes,
+    }
+
+
+def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(None)) -> dict:
+    """Seconds per simulated second of each phase on the slowest rank (mean over the snapshots)."""
+    L, B = net["latency"], net["bandwidth"]
+    red = L * math.ceil(math.log2(P)) if P > 1 else 0.0
+    nd, nb = cost["dem_steps_per_s"], cost["builds_per_s"]
+    ng = cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1.0)
+    fp = c[f"{name}/{P}/force_pairs"][rows]  # (snapshots, P)
+    sent = c[f"{name}/{P}/sent"][rows]
+    nbr = c[f"{name}/{P}/ghost_nbrs"][rows]
+    mig = c[f"{name}/{P}/migrated"][rows]
+    dem = nd * (
+        fp * cost["us_per_pair_step"] * 1e-6 + (UPDATE_CALLS + nbr * L + sent * UPDATE_BYTES / B + red) * (P > 1)
+    )
+    gap = float(np.mean(np.diff(c["times"])))  # migration is counted between snapshots
+    dem = (
+        dem
+        + nb * (REBUILD_CALLS + sent * REFRESH_BYTES / B + 2 * nbr * L + P * L) * (P > 1)
+        + mig * MIGRATE_BYTES / B / gap
+    )
+    owned = c[f"{name}/{P}/owned"][rows]
+    listed = c[f"{name}/{P}/pairs"][rows]
+    extra = listed * cost["us_per_pair_keyed_rebuild"] + owned * cost["us_per_particle_locate"]
+    dem = dem + nb * extra * 1e-6 * (P > 1)  # the parallel rebuild's own work: history by key, locating
+    cpl = ng * owned * cost["us_per_particle_step"] * 1e-6
+    nodes = c[f"{name}/{P}/nodes"][None, :]
+    halo = c[f"{name}/{P}/halo"][None, :]
+    hn = c[f"{name}/{P}/halo_nbrs"][None, :]
+    gas = ng * (
+        nodes * cost["us_per_node_step" if name == "C2" and P == 1 else "us_per_node_step_iter"] * 1e-6
+        + GAS_EXCHANGES * (hn * L + halo * GAS_VALUES * 8 / B)
+        + GAS_REDUCTIONS * red
+    )
+    out = {k: float(np.mean(np.max(v, axis=1))) for k, v in (("dem", dem), ("coupling", cpl), ("gas", gas))}
+    out["output"] = cost["output_s_per_s"] / P
+    out["total"] = sum(out.values())
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", default=None, help="C2 run folder with particle snapshots (else the cached census)")
+    ap.add_argument("--from", dest="t0", type=float, default=4.0, help="first snapshot time (s)")
+    ap.add_argument("--to", dest="t1", type=float, default=4.5, help="last snapshot time (s)")
+    ap.add_argument("--bandwidth", type=float, default=10e9, help="interconnect bandwidth (B/s)")
+    ap.add_argument("--latency", type=float, default=2e-6, help="interconnect latency per message (s)")
+    args = ap.parse_args()
+    cache = OUT / "scaling_census.npz"
+    if not args.run and not cache.is_file() and (ROOT / "runs" / "C2" / "particles").is_dir():
+        args.run = str(ROOT / "runs" / "C2")  # where `febed run demos/pseudo2d/C2.toml` writes
+    if args.run:
+        from febed.case import load_case
+
+        skin = load_case(ROOT / MESHES["C2"]).contact.skin
+        census = take_census(Path(args.run), args.t0, args.t1, skin)
+        OUT.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, **{k: np.asarray(v) for k, v in census.items()})
+    elif cache.is_file():
+        census = dict(np.load(cache))
+    else:
+        print(
+            "skipped: no census; give --run RUN_DIR, a C2 run folder with particle snapshots over the window "
+            "(e.g. `febed run demos/pseudo2d/C2.toml --set run.end_time=5`, which writes runs/C2)"
+        )
+        return
+    m1, m2 = load_measured("C2", 1), load_measured("C2", 2)
+    if m1 is None:
+        print(
+            f"skipped: no serial measurement {OUT / 'measured_C2_P1.json'}: run "
+            "`python benchmarks/scaling_measure.py --restart RUN_DIR` first"
+        )
+        return
+    for tag, what in (
+        ("_gamg", "the gas cost per node with CG + GAMG (taken as the serial solver's)"),
+        ("_rebuild", "the parallel rebuild's own work (taken as zero)"),
+    ):
+        if load_measured("C2", 1, tag) is None:
+            print(f"note: no {OUT / f'measured_C2_P1{tag}.json'}: {what}; see the commands in the docstring")
+    cost = unit_costs(m1, load_measured("C2", 1, "_gamg"), load_measured("C2", 1, "_rebuild"))
+    cost["h_ratio"] = float(census["C2/h_min"] / census["C3/h_min"])  # gas steps per second, fine / intermediate
+    net = {"bandwidth": args.bandwidth, "latency": args.latency}
+    times = np.asarray(census["times"])
+    n_snap = times.size
+    snap = slice(0, n_snap)
+    print(f"census: {n_snap} snapshots of the bubbling bed, t = {times[0]:.2f}-{times[-1]:.2f} s")
+    print(
+        f"single-core costs (CPU time, serial C2 window t = {m1['per_rank'][0]['t0']:.3f} s + {cost['sim']:.3f} s): "
+        f"{cost['us_per_pair_step'] * 1e3:.1f} ns per force pair per DEM step, "
+        f"{cost['us_per_node_step']:.3f} µs per gas node per gas step (Cholesky pressure solve; CG + GAMG "
+        f"{cost['us_per_node_step_iter']:.3f}), "
+        f"{cost['us_per_particle_step']:.3f} µs per particle per gas step (coupling); "
+        f"{cost['gas_steps_per_s']:.0f} gas steps, {cost['dem_steps_per_s']:.0f} DEM steps, "
+        f"{cost['builds_per_s']:.0f} list builds per simulated s (C3: {cost['h_ratio']:.2f} x the gas steps); "
+        f"a parallel rebuild's own work {cost['us_per_pair_keyed_rebuild'] * 1e3:.1f} ns per listed pair (history by "
+        f"key) + {cost['us_per_particle_locate'] * 1e3:.1f} ns per owned particle (locating)"
+    )
+    print(
+        f"interconnect: {args.bandwidth / 1e9:g} GB/s, {args.latency * 1e6:g} µs per message; reductions log2(P) "
+        f"latencies"
+    )
+    result = {"costs": cost, "net": net, "meshes": {}}
+    for name in MESHES:
+        label = "intermediate" if name == "C2" else "fine"
+        t1 = phase_times(census, name, 1, cost, net, snap)
+        print(
+            f"\n{name} ({label} mesh, {int(census[f'{name}/1/nodes'][0])} nodes), loads max/mean over ranks "
+            f"(mean over snapshots) and projected efficiency"
+        )
+        hdr = (
+            f"{'P':>3} {'particles':>9} {'ghosts/own':>10} {'pairs':>6} {'nodes':>6} {'halo/node':>9} "
+            f"{'kB/gas step':>11} {'E_DEM':>6} {'E_cpl':>6} {'E_gas':>6} {'E':>6}"
+        )
+        print(hdr)
+        rows = []
+        for P in RANKS:
+            tp = phase_times(census, name, P, cost, net, snap)
+            own = census[f"{name}/{P}/owned"][snap]
+            mm = lambda a: float(np.mean(a.max(axis=1) / np.maximum(a.mean(axis=1), 1)))  # noqa: E731
+            ghost = float(np.mean(census[f"{name}/{P}/ghosts"][snap].sum(axis=1) / own.sum(axis=1)))
+            nodes = census[f"{name}/{P}/nodes"]
+            halo = float(census[f"{name}/{P}/halo"].max() / max(nodes.min(), 1))
+            n_sub = cost["dem_steps_per_s"] / (cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1))
+            kb = float(np.mean(census[f"{name}/{P}/sent"][snap].max(axis=1))) * UPDATE_BYTES * n_sub / 1e3
+            kb += float(census[f"{name}/{P}/halo"].max()) * GAS_EXCHANGES * GAS_VALUES * 8 / 1e3
+            e = {k: t1[k] / (P * tp[k]) for k in ("dem", "coupling", "gas", "total")}
+            rows.append(
+                {
+                    "P": P,
+                    "particles": mm(own),
+                    "ghost_ratio": ghost,
+                    "pairs": mm(census[f"{name}/{P}/force_pairs"][snap]),
+                    "nodes": mm(nodes[None, :]),
+                    "halo_per_node": halo,
+                    "kB_per_gas_step": kb,
+                    **{f"E_{k}": v for k, v in e.items()},
+                    "time": tp,
+                }
+            )
+            print(
+                f"{P:3d} {mm(own):9.3f} {ghost:10.3f} {rows[-1]['pairs']:6.3f} {rows[-1]['nodes']:6.3f} "
+                f"{halo:9.3f} {kb:11.1f} {e['dem']:6.1%} {e['coupling']:6.1%} {e['gas']:6.1%} {e['total']:6.1%}"
+            )
+        for r in rows:
+            if r["P"] >= 8:
+                print(
+                    f"{name}: projected efficiency at {r['P']} ranks: {r['E_total']:.0%} (DEM {r['E_dem']:.0%}, "
+                    f"coupling {r['E_coupling']:.0%}, gas {r['E_gas']:.0%})"
+                )
+        result["meshes"][name] = rows
+    if census.get("checkpoint") is not None and bool(census["checkpoint"]):
+        validate(census, cost, net, m1, m2, result)
+    plot(result)
+    (OUT / "scaling_projection.json").write_text(json.dumps(result, indent=1, default=float))
+
+
+def validate(census, cost, net, m1, m2, result) -> None:
+    """The model's 2-rank efficiency of C2 on the checkpoint's state against measured ones.
+
+    The reference is the documented measurement of the same particle split with nothing else running
+    (`DOCUMENTED`); with m2 (a 2-rank window measured from the checkpoint) the loads per rank are compared
+    too, and that window's own efficiency is shown.
+    """
+    ck = slice(-1, None)  # the last census row is the checkpoint the measured windows continue
+    t1 = phase_times(census, "C2", 1, cost, net, ck)
+    t2 = phase_times(census, "C2", 2, cost, net, ck)
+    model = {k: t1[k] / (2 * t2[k]) for k in ("dem", "coupling", "gas", "total")}
+    r1 = m1["per_rank"][0]
+    sim1 = r1["t1"] - r1["t0"]
+    print(f"\nvalidation, C2 from its checkpoint at t = {r1['t0']:.3f} s, 1 -> 2 ranks:")
+    result["validation"] = {"model": model, "documented": DOCUMENTED}
+    own = ""
+    if m2 is not None:
+        sim2 = m2["per_rank"][0]["t1"] - m2["per_rank"][0]["t0"]
+        one = {k: v / sim1 for k, v in r1["split"].items()}
+        two = {k: max(r["split"][k] for r in m2["per_rank"]) / sim2 for k in one}  # the slowest rank, per phase
+        meas = {k: one[k] / (2 * two[k]) for k in ("dem", "coupling", "gas")}
+        meas["total"] = sum(one.values()) / (2 * sum(two.values()))
+        e_wall = r1["wall"] / sim1 / (2 * max(r["wall"] for r in m2["per_rank"]) / sim2)
+        for r in m2["per_rank"]:
+            s = r["samples"][0]
+            c = {k: int(census[f"C2/2/{k}"][-1][r["rank"]]) for k in ("owned", "ghosts", "pairs")}
+            print(
+                f"  rank {r['rank']}: run owned {s['owned']}, ghosts {s['ghosts']}, listed pairs {s['pairs']}, "
+                f"owned nodes {s['nodes_owned']}, local nodes {s['nodes_local']}; census owned {c['owned']}, ghosts "
+                f"{c['ghosts']}, listed pairs {c['pairs']}, owned nodes {census['C2/2/nodes'][r['rank']]:.0f}, "
+                f"local nodes {census['C2/2/nodes'][r['rank']] + census['C2/2/halo'][r['rank']]:.0f}"
+            )
+        print(
+            f"  this machine's 2-rank window (CPU seconds of the slowest rank per phase; a shared machine adds "
+            f"waits for descheduled ranks): DEM {meas['dem']:.1%}, coupling {meas['coupling']:.1%}, gas "
+            f"{meas['gas']:.1%}, whole step {meas['total']:.1%}; wall time {e_wall:.1%}"
+        )
+        own = f"; this machine's own 2-rank window {meas['total']:.1%}"
+        result["validation"].update({"measured": meas, "measured_wall": e_wall})
+    avg = result["meshes"]["C2"][1]["E_total"]
+    ref = list(DOCUMENTED.items())
+    print(f"  documented, nothing else running: {ref[0][0]} {ref[0][1]:.0%}; {ref[1][0]} {ref[1][1]:.0%}")
+    print(
+        f"  model: checkpoint state DEM {model['dem']:.1%}, coupling {model['coupling']:.1%}, gas "
+        f"{model['gas']:.1%}, whole step {model['total']:.1%}; mean over the census snapshots {avg:.1%}"
+    )
+    print(
+        f"validation: model 2-rank efficiency {model['total']:.1%} against {ref[0][1]:.0%} measured "
+        f"({100 * (model['total'] - ref[0][1]):+.1f} points{own})"
+    )
+    result["validation"]["model_snapshots"] = avg
+
+
+def plot(result) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for ax, (name, rows) in zip(axes, result["meshes"].items(), strict=True):
+        P = [r["P"] for r in rows]
+        for key, lab, st in (
+            ("E_total", "whole step", "k-o"),
+            ("E_dem", "DEM", "C0-s"),
+            ("E_coupling", "coupling", "C2-^"),
+            ("E_gas", "gas", "C1-d"),
+        ):
+            ax.plot(P, [r[key] for r in rows], st, label=lab)
+        if name == "C2" and "validation" in result:
+            v = result["validation"]
+            ref = list(DOCUMENTED.values())[0]
+            ax.plot([2], [ref], "r*", ms=12, label="measured, 2 ranks (a state of 1.11 particles max/mean)")
+            ax.plot([2], [v["model"]["total"]], "ko", mfc="none", ms=11, label="model, same state as measured")
+        ax.axhline(0.7, color="0.6", lw=0.8, ls="--")
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(P, [str(p) for p in P])
+        ax.set_xlabel("ranks")
+        ax.set_title(f"{name} ({'intermediate' if name == 'C2' else 'fine'} mesh)")
+        ax.set_ylim(0, 1.05)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("projected parallel efficiency")
+    axes[0].legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(OUT / "scaling_projection.png", dpi=120)
+    print(f"\nwritten {OUT / 'scaling_projection.png'}")
+
+
+if __name__ == "__main__":
+    main()
