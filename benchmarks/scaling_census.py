@@ -133,9 +133,9 @@ class HaloBins:
         self.marked = np.zeros((nparts, int(np.prod(dims))), dtype=bool)
         for p in range(nparts):
             box = np.ascontiguousarray(mesh.bbox[owner == p])
-            m = np.zeros(self.marked.shape[1], dtype=np.int64)
-            _mark(box, box.shape[0], width, lo, self.size, dims, np.int64(1), m)
-            self.marked[p] = m != 0
+            m = np.zeros((self.marked.shape[1], 1), dtype=np.int64)
+            _mark(box, box.shape[0], width, lo, self.size, dims, 0, np.int64(1), m)
+            self.marked[p] = m[:, 0] != 0
 
     def bins(self, pos: np.ndarray) -> np.ndarray:
         k = np.clip(((pos - self.lo) / self.size).astype(np.int64), 0, self.dims - 1)

@@ -2,7 +2,8 @@
 
 Rank r needs a copy of every particle whose centre lies within the halo width h (>= largest diameter + skin)
 of r's owned cells. The domain is covered by a uniform grid of bins; bin b carries the bit set of the ranks
-whose owned cells, each inflated by h around its bounding box, overlap b. A particle in bin b is sent as a
+whose owned cells, each inflated by h around its bounding box, overlap b (64 ranks per int64 word, as many
+words as the rank count needs). A particle in bin b is sent as a
 ghost to those ranks (except its owner). The table is a superset of the exact halo (bounding boxes, whole
 bins), which costs a few extra ghosts and never misses a contact. It depends only on the partition and h,
 so it is built once (collectively) and again only if the halo must grow.
@@ -16,12 +17,12 @@ import numpy as np
 from numba import njit
 
 MAX_BINS = 4_000_000
-MAX_RANKS = 63  # one bit per rank in an int64
+WORD = 64  # ranks per int64 word of a bin's bit set: rank r is bit r % 64 of word r // 64
 
 
 @njit(cache=True)
-def _mark(bbox, n_cells, h, lo, size, dims, bit, mask):
-    """Set `bit` in the bins overlapped by each cell box [lo - h, hi + h] of cells [0, n_cells)."""
+def _mark(bbox, n_cells, h, lo, size, dims, word, bit, mask):
+    """Set `bit` of word `word` of mask (nbins, words) in the bins overlapped by each cell box [lo - h, hi + h]."""
     for c in range(n_cells):
         k0 = np.empty(3, dtype=np.int64)
         k1 = np.empty(3, dtype=np.int64)
@@ -32,7 +33,7 @@ def _mark(bbox, n_cells, h, lo, size, dims, bit, mask):
             for j in range(k0[1], k1[1] + 1):
                 for k in range(k0[2], k1[2] + 1):
                     b = (i * dims[1] + j) * dims[2] + k
-                    mask[b] |= bit
+                    mask[b, word] |= bit
 
 
 @njit(cache=True)
@@ -50,37 +51,50 @@ def bin_of(pos, n, lo, size, dims, out):
 def ghost_targets(pos, n, lo, size, dims, mask, me, nr):
     """Send lists (start (nr+1,), rows, stray): rows[start[r]:start[r+1]] are the particles rank r needs.
 
-    stray counts the particles whose own bin lacks `me`'s bit (outside this rank's halo region: possible
-    only for particles outside the mesh).
+    mask: (nbins, words) bit sets (rank r: bit r % 64 of word r // 64). stray counts the particles whose own
+    bin lacks `me`'s bit (outside this rank's halo region: possible only for particles outside the mesh).
     """
     counts = np.zeros(nr, dtype=np.int64)
     start = np.zeros(nr + 1, dtype=np.int64)
-    mybit = np.int64(1) << me
+    myword = me // WORD
+    mybit = np.int64(1) << (me % WORD)
     stray = 0
     bins = np.empty(n, dtype=np.int64)
     bin_of(pos, n, lo, size, dims, bins)
     for p in range(n):
-        m = mask[bins[p]]
-        if not m & mybit:
+        b = bins[p]
+        if not mask[b, myword] & mybit:
             stray += 1
-        m &= ~mybit
-        for r in range(nr):
-            if m & (np.int64(1) << r):
-                counts[r] += 1
+        for w in range(mask.shape[1]):
+            m = mask[b, w] & ~mybit if w == myword else mask[b, w]
+            if m == 0:
+                continue
+            for k in range(min(WORD, nr - w * WORD)):
+                if m & (np.int64(1) << k):
+                    counts[w * WORD + k] += 1
     start[0] = 0
     for r in range(nr):
         start[r + 1] = start[r] + counts[r]
     rows = np.empty(start[nr], dtype=np.int64)
     fill = start[:nr].copy()
     for p in range(n):
-        m = mask[bins[p]] & ~mybit
-        if m == 0:
-            continue
-        for r in range(nr):
-            if m & (np.int64(1) << r):
-                rows[fill[r]] = p
-                fill[r] += 1
+        b = bins[p]
+        for w in range(mask.shape[1]):
+            m = mask[b, w] & ~mybit if w == myword else mask[b, w]
+            if m == 0:
+                continue
+            for k in range(min(WORD, nr - w * WORD)):
+                if m & (np.int64(1) << k):
+                    r = w * WORD + k
+                    rows[fill[r]] = p
+                    fill[r] += 1
     return start, rows, stray
+
+
+def neighbour_ranks(masks: np.ndarray, me: int, nr: int) -> list[int]:
+    """The ranks other than `me` present in any of the bit sets masks (nbins, words), in increasing order."""
+    union = np.bitwise_or.reduce(masks, axis=0) if masks.shape[0] else np.zeros(masks.shape[1], dtype=np.int64)
+    return [r for r in range(nr) if r != me and (int(union[r // WORD]) >> (r % WORD)) & 1]
 
 
 class HaloTable:
@@ -89,13 +103,12 @@ class HaloTable:
     Attributes:
         width: halo width h (m) the table was built for.
         lo, size, dims: grid origin (3,), bin size (m) and bins per direction (3,).
-        mask: (nbins,) int64 rank bit sets; neighbours: ranks sharing at least one bin with this one.
+        mask: (nbins, words) int64 rank bit sets (rank r: bit r % 64 of word r // 64); neighbours: ranks
+            sharing at least one bin with this one.
     """
 
     def __init__(self, comm, bbox: np.ndarray, n_owned_cells: int, width: float):
         """Build collectively from the owned cells' bounding boxes (nc, 2, 3) for halo width `width` (m)."""
-        if comm.size > MAX_RANKS:
-            raise ValueError(f"comm: at most {MAX_RANKS} ranks are supported by the halo table, got {comm.size}")
         if not width > 0:
             raise ValueError(f"width: the halo width must be > 0 (m), got {width}")
         self.comm = comm
@@ -116,14 +129,13 @@ class HaloTable:
                 break
             size *= 1.25
         self.lo, self.size, self.dims = lo, float(size), dims
-        local = np.zeros(int(np.prod(dims)), dtype=np.int64)
-        _mark(np.ascontiguousarray(bbox), n_owned_cells, self.width, lo, self.size, dims, np.int64(1) << comm.rank,
-              local)  # fmt: skip
+        words = (comm.size + WORD - 1) // WORD
+        local = np.zeros((int(np.prod(dims)), words), dtype=np.int64)
+        word, bit = comm.rank // WORD, np.int64(1) << (comm.rank % WORD)
+        _mark(np.ascontiguousarray(bbox), n_owned_cells, self.width, lo, self.size, dims, word, bit, local)
         self.mask = np.zeros_like(local)
         comm.Allreduce(local, self.mask, op=MPI.BOR)
-        mine = self.mask[local != 0]
-        union = int(np.bitwise_or.reduce(mine)) if mine.size else 0
-        self.neighbours = [r for r in range(comm.size) if r != comm.rank and union >> r & 1]
+        self.neighbours = neighbour_ranks(self.mask[local[:, word] != 0], comm.rank, comm.size)
 
     def targets(self, pos: np.ndarray, n: int):
         """(start (nranks+1,), rows, stray count): the ghost send lists of particles pos[:n]."""
