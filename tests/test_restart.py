@@ -265,8 +265,9 @@ def test_progress_line_is_live_on_a_terminal_and_logged(tmp_path):
     fh = logging.FileHandler(tmp_path / "febed.log")
     log.addHandler(fh)
     tty, pipe = Tty(), io.StringIO()
-    Progress(log, 0, tty).show("t = 0.1 / 1 s")
-    quiet = Progress(log, 0, pipe)
+    # env={}: not under an MPI launcher, whatever launched pytest (mpirun and pytest-xdist workers set its variables)
+    Progress(log, 0, tty, env={}).show("t = 0.1 / 1 s")
+    quiet = Progress(log, 0, pipe, env={})
     quiet.show("t = 0.2 / 1 s")
     fh.flush()
     assert tty.getvalue() == "\rt = 0.1 / 1 s" and pipe.getvalue() == ""
