@@ -18,7 +18,7 @@ from mpi4py import MPI
 
 import numpy as np
 
-from febed.coupling.drag import drag_forces, gas_forces_kernel, get_drag_law
+from febed.coupling.drag import RECORD_COLUMNS, RECORD_FP, RECORD_K, drag_forces, gas_forces_kernel, get_drag_law
 from febed.coupling.exchange import Coupler
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import locate
@@ -135,7 +135,7 @@ def production_path(ma, x, v, d, steps, lo, hi, u_nodes, gp_nodes):
     rng = np.random.default_rng(1)
     d_orig, n_orig = np.full(n, d), np.ones(n, dtype=np.int64)
     mass = 1150.0 * np.pi / 6 * d_orig**3
-    record = np.zeros((n, 11))
+    record = np.zeros((n, RECORD_COLUMNS))
     eps_nodes = np.full(ma.num_dofs, 0.6)
     stages = dict.fromkeys(["Coupler.locate", "Coupler.forces_into", "Coupler.project_to_gas"], 0.0)
     for it in range(steps + 1):
@@ -148,7 +148,7 @@ def production_path(ma, x, v, d, steps, lo, hi, u_nodes, gp_nodes):
         t.append(time.perf_counter())
         cp.forces_into(u_nodes, eps_nodes, gp_nodes, v, d_orig, n_orig, record, mass)
         t.append(time.perf_counter())
-        cp.project_to_gas(d_orig, n_orig, record[:, 0], v, F_explicit=record[:, 7:10])
+        cp.project_to_gas(d_orig, n_orig, record[:, RECORD_K], v, F_explicit=record[:, RECORD_FP])
         t.append(time.perf_counter())
         if it == 0:
             continue  # compile

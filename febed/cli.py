@@ -17,7 +17,9 @@ runs a case whose estimate is refused as absurd); a run that fails (a particle e
 after writing its last good state as a checkpoint, and so does a run stopped by an output error (a full disk:
 `febed.runs.lifecycle.OutputFailure`); a run stopped by SIGINT/SIGTERM/SIGUSR1 writes a checkpoint and exits with 128 +
 the signal number (130, 143, 138), also when stopped during start-up (status.json then says so); a traceback
-means a bug in febed (`febed run -v` shows the traceback of a refused value too).
+means a bug in febed (`febed run -v` shows the traceback of a refused value too). A bug met while a run steps
+(`febed.runs.lifecycle.InternalError`) is logged with its traceback, recorded as an internal error in
+status.json, and exits with status 3 after writing the last good state (on one process).
 """
 
 from __future__ import annotations
@@ -352,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(args) -> int:
     from febed.dem.solver import DEMFailure
-    from febed.runs.lifecycle import Interrupted, StopNow
+    from febed.runs.lifecycle import InternalError, Interrupted, StopNow
     from febed.solver import RunFailure
 
     commands = {
@@ -376,6 +378,9 @@ def _main(args) -> int:
         return 3
     except DEMFailure as e:  # a pure-DEM run (a coupled run turns it into a RunFailure)
         _say(f"febed: the run failed: the particles blew up: {e}", err=True)
+        return 3
+    except InternalError as e:  # a bug met while the run stepped: its traceback is in the log already
+        _say(f"febed: the run stopped on an {e}", err=True)
         return 3
     except Interrupted as e:
         _say(f"febed: {e}", err=True)

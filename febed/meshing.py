@@ -19,14 +19,14 @@ the same geometry through gmsh's Python API.
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from unittest import mock
 
 from mpi4py import MPI
 
 import numpy as np
+
+from febed.io.atomic import atomic_path
 
 # Seed 001 Table 2: cells (Nx, Ny, Nz) and bottom-wall patch cells (Nx, Ny).
 PSEUDO2D_BOX = (0.08, 0.015, 0.25)
@@ -303,14 +303,8 @@ def _build_model(gmsh, name: str, level: str, cell: str, size: float, extent=Non
 
 def _atomic_write(gmsh, out: Path) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=out.suffix, dir=out.parent)
-    os.close(fd)
-    try:
-        gmsh.write(tmp)
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_path(out, suffix=".tmp" + out.suffix) as tmp:  # gmsh picks the format by the extension
+        gmsh.write(str(tmp))
     return out
 
 
@@ -350,8 +344,6 @@ def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = No
         comm: communicator to distribute the mesh over.
         gdim: geometric dimension; by default 2 if every node has z = 0, else 3.
     """
-    from dolfinx.io import gmshio
-
     path = Path(path)
     err, names, dim = None, {}, 3
     gmsh = None
@@ -378,15 +370,91 @@ def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = No
         if gmsh is not None:
             gmsh.clear()
         raise MeshError(err)
-    with mock.patch.object(gmshio, "create_mesh", _create_mesh_rcb):  # deterministic partition (see there)
-        if comm.rank == 0:
-            mesh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=gdim or dim)
+    try:
+        mesh, ct, ft = _model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, gdim or dim)
+    finally:
+        if gmsh is not None:
             gmsh.clear()
-        else:
-            import gmsh as gmsh_mod
-
-            mesh, ct, ft = gmshio.model_to_mesh(gmsh_mod.model, comm, 0, gdim=gdim or dim)
     return MeshData(mesh=mesh, facet_tags=ft, cell_tags=ct, tags=names, source=str(path))
+
+
+def _model_to_mesh(model, comm, gdim: int):
+    """The DOLFINx mesh, cell tags and facet tags of the gmsh `model` held by rank 0 (None elsewhere) (collective).
+
+    What `dolfinx.io.gmshio.model_to_mesh` does, with the cells distributed by `_create_mesh_rcb` (DOLFINx 0.5's
+    model_to_mesh takes no partitioner): the cells of the highest dimension and their physical tags, and the
+    facets of the dimension below with theirs, read on rank 0 by gmshio's `extract_geometry` and
+    `extract_topology_and_markers`, reordered to DOLFINx's node order (`cell_perm_array`) and distributed by
+    `dolfinx.mesh.create_mesh`; the tags follow through `distribute_entity_data`.
+    """
+    import dolfinx.graph
+    import dolfinx.io.utils
+    import dolfinx.mesh
+    from dolfinx.io import gmshio
+
+    root = 0
+    has_facets = False
+    cell_id = num_nodes = num_facet_nodes = None
+    if comm.rank == root:
+        x = gmshio.extract_geometry(model)
+        topologies = gmshio.extract_topology_and_markers(model)
+        kinds = {}  # gmsh element type -> (dimension, nodes per element)
+        for element in topologies:
+            _, edim, _, nn, _, _ = model.mesh.getElementProperties(element)
+            kinds[element] = (edim, nn)
+        by_dim = sorted(kinds, key=lambda e: kinds[e][0])
+        cell_id = by_dim[-1]
+        tdim, num_nodes = kinds[cell_id]
+        cells = np.asarray(topologies[cell_id]["topology"], dtype=np.int64)
+        cell_values = np.asarray(topologies[cell_id]["cell_data"], dtype=np.int32)
+        has_facets = len(by_dim) > 1 and kinds[by_dim[-2]][0] == tdim - 1
+        if has_facets:
+            facet_id = by_dim[-2]
+            num_facet_nodes = kinds[facet_id][1]
+            facets = np.asarray(topologies[facet_id]["topology"], dtype=np.int64)
+            facet_values = np.asarray(topologies[facet_id]["cell_data"], dtype=np.int32)
+    cell_id, num_nodes, has_facets, num_facet_nodes = comm.bcast(
+        (cell_id, num_nodes, has_facets, num_facet_nodes), root=root
+    )
+    if comm.rank != root:
+        x = np.empty((0, gdim))
+        cells = np.empty((0, num_nodes), dtype=np.int64)
+        cell_values = np.empty(0, dtype=np.int32)
+        if has_facets:
+            facets = np.empty((0, num_facet_nodes), dtype=np.int64)
+            facet_values = np.empty(0, dtype=np.int32)
+
+    domain = gmshio.ufl_mesh(cell_id, gdim)
+    cell_type = dolfinx.mesh.to_type(str(domain.ufl_cell()))
+    cells = cells[:, gmshio.cell_perm_array(cell_type, num_nodes)]
+    mesh = _create_mesh_rcb(comm, cells, x[:, :gdim], domain)
+    topology = mesh.topology
+    tdim = topology.dim
+
+    entities, values = dolfinx.io.utils.distribute_entity_data(mesh, tdim, cells, cell_values)
+    topology.create_connectivity(tdim, 0)
+    cell_tags = dolfinx.mesh.meshtags_from_entities(
+        mesh, tdim, dolfinx.graph.create_adjacencylist(entities), values.astype(np.int32)
+    )
+    cell_tags.name = "Cell tags"
+    if has_facets:
+        CT = dolfinx.mesh.CellType
+        facet_type = {CT.triangle: CT.interval, CT.quadrilateral: CT.interval, CT.tetrahedron: CT.triangle,
+                      CT.hexahedron: CT.quadrilateral}.get(cell_type)  # fmt: skip
+        if facet_type is None:
+            raise MeshError(f"{cell_type.name} cells are not supported: use triangles, quadrilaterals, tetrahedra "
+                            "or hexahedra")  # fmt: skip
+        facets = facets[:, gmshio.cell_perm_array(facet_type, num_facet_nodes)]
+        entities, values = dolfinx.io.utils.distribute_entity_data(mesh, tdim - 1, facets, facet_values)
+        topology.create_connectivity(tdim - 1, tdim)
+        facet_tags = dolfinx.mesh.meshtags_from_entities(
+            mesh, tdim - 1, dolfinx.graph.create_adjacencylist(entities), values.astype(np.int32)
+        )
+    else:
+        empty = np.empty(0, dtype=np.int32)
+        facet_tags = dolfinx.mesh.meshtags(mesh, tdim - 1, empty, empty)
+    facet_tags.name = "Facet tags"
+    return mesh, cell_tags, facet_tags
 
 
 def rcb_owners(points: np.ndarray, nparts: int, axes: tuple[int, ...] | None = None) -> np.ndarray:

@@ -63,6 +63,7 @@ from febed.runs.lifecycle import (
     close_files,
     guarded_write,
     record_failure,
+    record_internal_error,
     run_to_end,
     stopped_mid_step,
     write_run_status,
@@ -374,11 +375,17 @@ class CoupledRun:
                 err = RunFailure(f"the particles blew up: {e}")
                 self.fail(err)
                 raise err from None
-            except (ValueError, IndexError, ZeroDivisionError, FloatingPointError, MemoryError) as e:
-                # a blow-up surfacing inside a kernel or NumPy call (e.g. a negative array size): a failure,
-                # not an input error; on several ranks only this rank knows, so no collective checkpoint
-                err = RunFailure(f"numerical failure in the gas step from t = {s.t:.6g} s: {type(e).__name__}: {e}")
-                self.broken = self.comm.size > 1  # the other ranks wait in a collective: no closing output
+            except Exception as e:
+                # Only this rank may know: the others may wait in a collective, so on several ranks there is no
+                # closing output and no collective checkpoint. A blow-up can surface inside a kernel or NumPy
+                # call before the checks see it (an absurd array size); the state then shows it. An error
+                # with nothing wrong in the state is a bug in febed, reported as such.
+                where = f"in the gas step from t = {s.t:.6g} s"
+                problem = "out of memory" if isinstance(e, MemoryError) else s._local_problem()  # this rank's checks
+                if problem is None:
+                    raise record_internal_error(self, e, where) from e
+                err = RunFailure(f"{problem}; it stopped the gas step from t = {s.t:.6g} s: {type(e).__name__}: {e}")
+                self.broken = self.comm.size > 1
                 self.fail(err, collective=not self.broken)
                 raise err from e
             self.output()

@@ -39,6 +39,7 @@ from numba import njit
 
 from febed.bed import build_dem
 from febed.coarse import setup as coarse
+from febed.coupling.drag import RECORD_COLUMNS, RECORD_FORCE, RECORD_FP, RECORD_K, RECORD_SET, RECORD_VEL
 from febed.coupling.exchange import Coupler
 from febed.coupling.locate import OUTSIDE_DOMAIN, OUTSIDE_LOCAL
 from febed.coupling.mesh_arrays import extract_mesh_arrays
@@ -47,8 +48,8 @@ from febed.gas.vans import VANSSolver
 from febed.parallel.exchange import ParticleExchange
 from febed.parallel.partition import cell_owners
 
-FLUID = "fluid"  # auxiliary particle array: K_p, F_D + F_P, v_p at the step start, F_P, valid flag
-FLUID_COLUMNS = 11
+FLUID = "fluid"  # auxiliary particle array: the exchange record, columns `febed.coupling.drag.RECORD_*`
+FLUID_COLUMNS = RECORD_COLUMNS
 
 
 @njit(cache=True)
@@ -219,7 +220,9 @@ class CoupledSolver:
             steps = (n_sub * (k + 1)) // chunks - done
             n = P.n_owned
             a = P.aux(FLUID)[:n]
-            f = a[:, 1:4] if k == 0 else a[:, 1:4] + a[:, :1] * (a[:, 4:7] - P.vel[:n])
+            f = a[:, RECORD_FORCE]
+            if k > 0:  # the drag relaxed to the particles' current velocity
+                f = f + a[:, RECORD_K, None] * (a[:, RECORD_VEL] - P.vel[:n])
             t1 = time.perf_counter()
             self.timers.coupling += t1 - t0
             self.dem.advance(steps, h, f)
@@ -396,7 +399,7 @@ class CoupledSolver:
         f_d = np.empty((self.dem.particles.n_owned, 3))
         self._fluid(relocate, f_d)
         a = self.dem.particles.aux(FLUID)[: f_d.shape[0]]
-        return a[:, 0].copy(), f_d, a[:, 7:10].copy()
+        return a[:, RECORD_K].copy(), f_d, a[:, RECORD_FP].copy()
 
     def _fluid(self, relocate: bool, drag: np.ndarray | None = None) -> float:
         """Fill the FLUID record of every owned particle from the current gas; returns min m_p/K_p (s).
@@ -420,10 +423,10 @@ class CoupledSolver:
         """K_p and F_P (views) the particles were given for this step, in the current row order (fresh if missing)."""
         P = self.dem.particles
         n = P.n_owned
-        if not (FLUID in P.aux_names and _all_set(P.aux(FLUID)[:n], 10)):
+        if not (FLUID in P.aux_names and _all_set(P.aux(FLUID)[:n], RECORD_SET)):
             self._fluid(relocate=False)
         a = P.aux(FLUID)[:n]
-        return a[:, 0], a[:, 7:10]
+        return a[:, RECORD_K], a[:, RECORD_FP]
 
     def project(self):
         """ε^{n+1} (with its floor), K_i [kg/(m^3 s)], K_i v̄_i and the explicit force density at the nodes.

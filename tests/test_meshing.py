@@ -147,3 +147,25 @@ def test_geo_sources_match_builders(seed_meshes, mpi_tmp_path, geo, builtin):
     assert set(a.tags) == set(b.tags)
     for tag in a.tags:
         assert abs(facet_area(a, tag) / facet_area(b, tag) - 1) < 1e-12, tag
+
+
+@pytest.mark.parametrize("variant", ["pseudo2d-coarse", "wang2d-tri"])
+def test_cells_are_shared_by_coordinate_bisection_across_gravity(seed_meshes, variant):
+    """load_msh distributes the cells by `rcb_owners` of their centroids, cutting only across gravity (the last
+    axis): the ranks own equal shares to one cell, each share spans the mesh's whole height, and loading again
+    gives the same partition."""
+    comm = MPI.COMM_WORLD
+    md = load_msh(seed_meshes[variant])
+    again = load_msh(seed_meshes[variant]).mesh.topology
+    t = md.mesh.topology
+    n = t.index_map(t.dim).size_local
+    x = md.mesh.geometry.x
+    gdim = md.mesh.geometry.dim
+    dofs = md.mesh.geometry.dofmap.array.reshape(-1, md.mesh.geometry.dofmap.links(0).size)[:n]
+    height = x[dofs, gdim - 1].mean(axis=1)  # cell centroids along gravity
+    lo, hi = comm.allreduce(height.min(), op=MPI.MIN), comm.allreduce(height.max(), op=MPI.MAX)
+    counts, total = comm.allgather(n), global_cell_count(md)  # (every collective call before any assert)
+    assert max(counts) - min(counts) <= 1 and sum(counts) == total
+    tol = 1e-9 * (hi - lo)  # (centroids are means in each rank's node order)
+    assert height.min() < lo + tol and height.max() > hi - tol  # every rank's cells reach the bottom and the top
+    assert np.array_equal(again.original_cell_index[:n], t.original_cell_index[:n])

@@ -84,7 +84,7 @@ def where_particles():
     from febed.io import particles
 
     # at t = 0 the .vtp and the .pvd, then the .vtp at 0.005 s
-    return particles, "_atomic_bytes", 3, particle_file, r"cannot write \S*/particles_000001\.vtp: \[Errno 28\]"
+    return particles, "atomic_write_bytes", 3, particle_file, r"cannot write \S*/particles_000001\.vtp: \[Errno 28\]"
 
 
 def where_checkpoints():
@@ -226,7 +226,7 @@ def test_every_mode_stops_cleanly_on_an_output_error(tmp_path, capsys, monkeypat
     out = tmp_path / "run"
     run = ["run", str(case), "--set", f"output.directory={out}", "--set", "output.checkpoint_interval=0.004"]
     if mode == "dem":  # a .vtp and the .pvd per output
-        monkeypatch.setattr(particles, "_atomic_bytes", at_call(particles._atomic_bytes, 5, particle_file))
+        monkeypatch.setattr(particles, "atomic_write_bytes", at_call(particles.atomic_write_bytes, 5, particle_file))
         name = r"particles/particles_000002\.vtp: \[Errno 28\] No space left on device"
     elif mode == "gas":  # u, p, eps per output
         write = dolfinx.io.XDMFFile.write_function

@@ -13,11 +13,16 @@ density cancels out of m_p/τ_p. Written with C_D Re_p (finite at zero slip) so 
 Coarse-grained particles representing n_orig originals: K = n_orig * law(eps, slip, d_orig, ...), i.e. the
 drag of the parcel is n_orig times that of one original particle at the parcel's velocity (`drag_kernel`).
 
-Adding a law is one function with the signature above under `@DRAG_LAWS.register("name")` and
-`@njit(cache=True)`, plus one branch in `law_value`. The batched kernels select the law by its index in
-`LAW_ORDER` rather than taking the law function as an argument: Numba types a function argument by the
-identity of its dispatcher, which differs in every process, so kernels taking one were recompiled in every
-process and their on-disk cache index grew until it could no longer be written.
+Adding a law is one function with the signature above under `@drag_law("name")` and `@njit(cache=True)`;
+nothing else. `drag_law` registers a `DragLaw` (name + function) in `febed.schema.DRAG_LAWS`, which gives
+`coupling.drag` its choices. The batched kernels take the `DragLaw` as an argument and call it through
+`law_value`, a Numba overload that dispatches at compile time on the law's Numba type `DragLawType(name)`
+(as the contact laws dispatch on their parameter type): each kernel is compiled, and cached, once per law.
+The type is keyed on the law's name, not on the identity of its Numba function, which differs in every
+process: a kernel taking the jitted function itself would be compiled again in every process and its
+on-disk cache index would grow until it could no longer be written. Laws belong in this module: the kernel
+cache (`febed.kernel_cache`) is keyed on febed's sources, so an edit to a law defined elsewhere would not reach
+kernels already cached with it.
 """
 
 from __future__ import annotations
@@ -25,9 +30,74 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import NativeValue, models, overload, register_model, typeof_impl, unbox
 
 from febed.schema import DRAG_LAWS
+
+
+class DragLaw:
+    """A registered drag law: its name and Numba function `K = func(eps, slip, d, rho_g, mu_g)` (kg/s).
+
+    Calling it calls the function; passed to a Numba kernel it has the type `DragLawType(name)`, through
+    which `law_value` calls the function (compiled into the kernel).
+    """
+
+    def __init__(self, name: str, func):
+        """Wrap the Numba function `func` of the law called `name`."""
+        self.name = name
+        self.func = func
+        self.__doc__ = func.__doc__
+
+    def __call__(self, eps, slip, d, rho_g, mu_g):
+        """K (kg/s) of one sphere (see the module docstring)."""
+        return self.func(eps, slip, d, rho_g, mu_g)
+
+    def __repr__(self) -> str:
+        return f"DragLaw({self.name!r})"
+
+
+class DragLawType(types.Dummy):
+    """Numba type of a `DragLaw` argument: one type per law name (so kernels are compiled once per law)."""
+
+    def __init__(self, law_name: str):
+        self.law_name = law_name
+        super().__init__(name=f"DragLaw({law_name})")
+
+
+register_model(DragLawType)(models.OpaqueModel)  # carries no data: the law is in the type
+
+
+@typeof_impl.register(DragLaw)
+def _typeof_drag_law(val, c):
+    return DragLawType(val.name)
+
+
+@unbox(DragLawType)
+def _unbox_drag_law(typ, obj, c):
+    return NativeValue(c.context.get_dummy_value(), is_error=cgutils.false_bit)
+
+
+def drag_law(name: str):
+    """Decorator registering the Numba drag-law function as the `DragLaw` `DRAG_LAWS[name]`; returns the function."""
+
+    def deco(func):
+        DRAG_LAWS.register(name)(DragLaw(name, func))
+        return func
+
+    return deco
+
+
+# Layout of the per-particle exchange record `gas_forces_into` writes (row p; the solver keeps it as the FLUID
+# auxiliary particle array). Read and write it through these names only.
+RECORD_K = 0  # K_p (kg/s)
+RECORD_FORCE = slice(1, 4)  # F_D + F_P (N), the fluid force the particle receives
+RECORD_VEL = slice(4, 7)  # v_p (m/s) when the record was filled
+RECORD_FP = slice(7, 10)  # F_P (N), the pressure-gradient part
+RECORD_SET = 10  # 1.0 once the row is filled (rows added since have 0)
+RECORD_COLUMNS = 11
+_F0, _V0, _P0 = RECORD_FORCE.start, RECORD_VEL.start, RECORD_FP.start  # first columns, for the kernels
 
 
 @njit(cache=True)
@@ -44,14 +114,14 @@ def _k_from_cd_re(cd_re, d, mu_g):
     return math.pi * mu_g * d * cd_re / 8.0
 
 
-@DRAG_LAWS.register("stokes")
+@drag_law("stokes")
 @njit(cache=True)
 def stokes(eps, slip, d, rho_g, mu_g):
     """Stokes drag of an isolated sphere: K = 3 π μ d (kg/s); ε, slip and ρ_g unused (C_D = 24/Re)."""
     return 3.0 * math.pi * mu_g * d
 
 
-@DRAG_LAWS.register("schiller-naumann")
+@drag_law("schiller-naumann")
 @njit(cache=True)
 def schiller_naumann(eps, slip, d, rho_g, mu_g):
     """Schiller-Naumann drag of an isolated sphere: K = π μ d C_D Re / 8 (kg/s), ε unused.
@@ -63,7 +133,7 @@ def schiller_naumann(eps, slip, d, rho_g, mu_g):
     return _k_from_cd_re(_cd_re_single(re), d, mu_g)
 
 
-@DRAG_LAWS.register("wen-yu")
+@drag_law("wen-yu")
 @njit(cache=True)
 def wen_yu(eps, slip, d, rho_g, mu_g):
     """Wen & Yu drag as in seed 001 eq 24: K = π μ d C_D,WY Re_p / 8 (kg/s).
@@ -75,7 +145,7 @@ def wen_yu(eps, slip, d, rho_g, mu_g):
     return _k_from_cd_re(_cd_re_single(re) * eps**-2.7, d, mu_g)
 
 
-@DRAG_LAWS.register("ergun")
+@drag_law("ergun")
 @njit(cache=True)
 def ergun(eps, slip, d, rho_g, mu_g):
     """Ergun drag as in seed 001 eq 25: K = π μ d C_D,ER Re_p / 8 (kg/s).
@@ -87,7 +157,7 @@ def ergun(eps, slip, d, rho_g, mu_g):
     return _k_from_cd_re((200.0 * (1.0 - eps) + 7.0 / 3.0 * re) / eps, d, mu_g)
 
 
-@DRAG_LAWS.register("gidaspow-blend")
+@drag_law("gidaspow-blend")
 @njit(cache=True)
 def gidaspow_blend(eps, slip, d, rho_g, mu_g):
     """Huilin-Gidaspow blend of Wen-Yu and Ergun, seed 001 eqs 20-25: K = φ K_WY + (1 - φ) K_ER (kg/s).
@@ -137,7 +207,7 @@ def emms_heterogeneity(eps, re):
     return 1.0  # a = 1, c = 0
 
 
-@DRAG_LAWS.register("emms")
+@drag_law("emms")
 @njit(cache=True)
 def emms(eps, slip, d, rho_g, mu_g):
     """EMMS drag, seed 000 eqs 2-6 with Table 1: K = V_p β/(1 - ε) = π μ d C_d Re_p ε^-2.65 H_d / 8 (kg/s).
@@ -150,48 +220,46 @@ def emms(eps, slip, d, rho_g, mu_g):
     return _k_from_cd_re(cd_re * eps**-2.65 * emms_heterogeneity(eps, re), d, mu_g)
 
 
-LAW_ORDER = ("stokes", "schiller-naumann", "wen-yu", "ergun", "gidaspow-blend", "emms")
+def law_value(law, eps, slip, d, rho_g, mu_g):
+    """K (kg/s) of the drag law `law` (a `DragLaw`); in Numba kernels it compiles to a direct call of the law."""
+    return law.func(eps, slip, d, rho_g, mu_g)
 
 
-@njit(cache=True)
-def law_value(law_id, eps, slip, d, rho_g, mu_g):
-    """K (kg/s) of drag law number `law_id` in LAW_ORDER (the batched kernels' dispatch)."""
-    if law_id == 0:
-        return stokes(eps, slip, d, rho_g, mu_g)
-    if law_id == 1:
-        return schiller_naumann(eps, slip, d, rho_g, mu_g)
-    if law_id == 2:
-        return wen_yu(eps, slip, d, rho_g, mu_g)
-    if law_id == 3:
-        return ergun(eps, slip, d, rho_g, mu_g)
-    if law_id == 4:
-        return gidaspow_blend(eps, slip, d, rho_g, mu_g)
-    return emms(eps, slip, d, rho_g, mu_g)
+@overload(law_value, jit_options={"cache": True})
+def _law_value_ol(law, eps, slip, d, rho_g, mu_g):
+    if not isinstance(law, DragLawType):
+        return None
+    func = DRAG_LAWS.get(law.law_name).func
+
+    def impl(law, eps, slip, d, rho_g, mu_g):
+        return func(eps, slip, d, rho_g, mu_g)
+
+    return impl
 
 
-def law_index(law) -> int:
-    """Index in LAW_ORDER of a drag law given by name or as the registered function."""
+def as_drag_law(law) -> DragLaw:
+    """The registered `DragLaw` given by name, as a `DragLaw` or as its Numba function (ValueError otherwise)."""
     if isinstance(law, str):
-        get_drag_law(law)  # ValueError listing the valid names
-        name = law
-    else:
-        names = [n for n in LAW_ORDER if DRAG_LAWS.get(n) is law]
-        if not names:
-            raise ValueError(f"law: {law!r} is not a registered drag law ({', '.join(LAW_ORDER)})")
-        name = names[0]
-    if name not in LAW_ORDER:
-        raise ValueError(f"drag law {name!r} has no branch in febed.coupling.drag.law_value: add one")
-    return LAW_ORDER.index(name)
+        return get_drag_law(law)
+    if isinstance(law, DragLaw):
+        if DRAG_LAWS.get(law.name) is not law:
+            raise ValueError(f"law: {law!r} is not the registered drag law {law.name!r}")
+        return law
+    for name in DRAG_LAWS.names():
+        entry = DRAG_LAWS.get(name)
+        if entry.func is law:
+            return entry
+    raise ValueError(f"law: {law!r} is not a registered drag law ({', '.join(DRAG_LAWS.names())})")
 
 
 def drag_kernel(law, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
-    """`_drag_kernel` for a law given by name or function (see there)."""
-    _drag_kernel(law_index(law), eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F)
+    """`_drag_kernel` for a law given by name, `DragLaw` or function (see there)."""
+    _drag_kernel(as_drag_law(law), eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F)
 
 
 @njit(cache=True)
-def _drag_kernel(law_id, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
-    """Per-particle exchange coefficient K (N,) (kg/s) and drag force F (N, 3) (N) for any drag law.
+def _drag_kernel(law, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
+    """Per-particle exchange coefficient K (N,) (kg/s) and drag force F (N, 3) (N) for the `DragLaw` law.
 
     K_p = n_orig,p law(ε_@p, |u_@p - v_p|, d_orig,p, ρ_g, μ_g) and F_p = K_p (u_@p - v_p) (seed 001 eq 20);
     eps (N,), gas velocity u (N, 3) and particle velocity v (N, 3) at the particles. Particles with ε <= 0
@@ -206,7 +274,7 @@ def _drag_kernel(law_id, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
         s1 = u[p, 1] - v[p, 1]
         s2 = u[p, 2] - v[p, 2]
         slip = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        k = n_orig[p] * law_value(law_id, eps[p], slip, d_orig[p], rho_g, mu_g)
+        k = n_orig[p] * law_value(law, eps[p], slip, d_orig[p], rho_g, mu_g)
         K[p] = k
         F[p, 0] = k * s0
         F[p, 1] = k * s1
@@ -223,7 +291,7 @@ def pressure_gradient_kernel(volume, grad_p, F):
 
 
 def get_drag_law(name: str):
-    """The registered Numba drag law `name` (see module docstring); ValueError listing the valid names."""
+    """The registered `DragLaw` called `name` (see the module docstring); ValueError listing the valid names."""
     try:
         return DRAG_LAWS.get(name)
     except KeyError as e:
@@ -251,13 +319,13 @@ def drag_forces(law, eps, u, v, d_orig, n_orig, rho_g: float, mu_g: float, K=Non
 
 
 def gas_forces_kernel(law, *args):
-    """`_gas_forces` for a law given by name or function (see there)."""
-    _gas_forces(law_index(law), *args)
+    """`_gas_forces` for a law given by name, `DragLaw` or function (see there)."""
+    _gas_forces(as_drag_law(law), *args)
 
 
 @njit(cache=True)
 def _gas_forces(
-    law_id, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
+    law, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
     F_p, eps_p,
 ):  # fmt: skip
     """Fused per-sub-step kernel: interpolate u, ε, ∇p (seed 001 eq 28), then drag (eq 20) and -V_p ∇p (eq 27).
@@ -267,20 +335,20 @@ def _gas_forces(
     Unlocated particles (cell < 0) get zero K, forces and ε.
     """
     gas_forces_into(
-        law_id, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K,
-        F_d, F_p, eps_p, np.empty((0, 11)), np.empty(0),
+        law, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K,
+        F_d, F_p, eps_p, np.empty((0, RECORD_COLUMNS)), np.empty(0),
     )  # fmt: skip
 
 
 @njit(cache=True)
 def gas_forces_into(
-    law_id, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
+    law, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
     F_p, eps_p, aux, mass,
 ):  # fmt: skip
     """`_gas_forces`, also filling the solver's per-particle exchange record and returning min m_p/K_p (s).
 
     Outputs with 0 rows are skipped (K, F_d, F_p, eps_p, aux: pass `np.empty((0, ...))` for those not wanted).
-    If aux has N rows, row p gets [K_p, F_D + F_P (3), v_p (3), F_P (3), 1] (`febed.solver.FLUID`); if mass
+    If aux (N, RECORD_COLUMNS) has N rows, row p gets K_p, F_D + F_P, v_p, F_P and 1 in the `RECORD_*` columns; if mass
     (N,) kg is given, returns min_p m_p / max(K_p, 1e-300) (the shortest particle relaxation time τ_p; NaN if
     any is NaN, inf without particles), else inf.
     """
@@ -316,7 +384,7 @@ def gas_forces_into(
             s1 = u1 - v[p, 1]
             s2 = u2 - v[p, 2]
             if e > 0.0:
-                k = n_orig[p] * law_value(law_id, e, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), d_orig[p], rho_g, mu_g)
+                k = n_orig[p] * law_value(law, e, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), d_orig[p], rho_g, mu_g)
             fd0 = k * s0
             fd1 = k * s1
             fd2 = k * s2
@@ -337,17 +405,17 @@ def gas_forces_into(
             F_p[p, 1] = fp1
             F_p[p, 2] = fp2
         if with_aux:
-            aux[p, 0] = k
-            aux[p, 1] = fd0 + fp0
-            aux[p, 2] = fd1 + fp1
-            aux[p, 3] = fd2 + fp2
-            aux[p, 4] = v[p, 0]
-            aux[p, 5] = v[p, 1]
-            aux[p, 6] = v[p, 2]
-            aux[p, 7] = fp0
-            aux[p, 8] = fp1
-            aux[p, 9] = fp2
-            aux[p, 10] = 1.0
+            aux[p, RECORD_K] = k
+            aux[p, _F0] = fd0 + fp0
+            aux[p, _F0 + 1] = fd1 + fp1
+            aux[p, _F0 + 2] = fd2 + fp2
+            aux[p, _V0] = v[p, 0]
+            aux[p, _V0 + 1] = v[p, 1]
+            aux[p, _V0 + 2] = v[p, 2]
+            aux[p, _P0] = fp0
+            aux[p, _P0 + 1] = fp1
+            aux[p, _P0 + 2] = fp2
+            aux[p, RECORD_SET] = 1.0
         if with_tau:
             r = mass[p] / (k if not k < 1e-300 else 1e-300)  # np.maximum(K, 1e-300): NaN stays NaN
             if r != r:

@@ -25,11 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from febed.coupling.drag import (
+    RECORD_COLUMNS,
     drag_forces,
     gas_forces_into,
     gas_forces_kernel,
     get_drag_law,
-    law_index,
     pressure_gradient_kernel,
 )
 from febed.coupling.interpolate import interpolate
@@ -82,7 +82,6 @@ class Coupler:
             raise ValueError(f"void_floor: the void-fraction floor must be in [0, 1], got {void_floor}")
         self.ma = ma
         self.law = get_drag_law(drag)
-        self.law_id = law_index(drag)
         self.rho_g, self.mu_g = float(rho_g), float(mu_g)
         self.filter_passes = int(filter_passes)
         self.void_floor = float(void_floor)
@@ -165,17 +164,19 @@ class Coupler:
     def forces_into(self, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record, mass, drag=None) -> float:
         """`forces` writing each particle's exchange record instead of new arrays; returns min m_p/K_p (s).
 
-        Row p of `record` (N, 11) gets [K_p, F_D + F_P (3), v_p (3), F_P (3), 1] (the solver's per-particle
-        auxiliary array); mass (N,) kg gives the shortest relaxation time τ_p = m_p/K_p (NaN if any is NaN,
-        inf without particles); `drag` (N, 3), if given, receives F_D (N).
+        Row p of `record` (N, RECORD_COLUMNS) gets K_p, F_D + F_P, v_p, F_P and 1 in the `RECORD_*` columns of
+        `febed.coupling.drag` (the solver's per-particle auxiliary array); mass (N,) kg gives the shortest
+        relaxation time τ_p = m_p/K_p (NaN if any is NaN, inf without particles); `drag` (N, 3), if given,
+        receives F_D (N).
         """
         n = self.cell.size
         drag = _NONE3 if drag is None else drag
-        if record.shape != (n, 11) or mass.shape != (n,) or v.shape != (n, 3) or drag.shape[0] not in (0, n):
-            raise ValueError(f"record, mass, v, drag: need shapes ({n}, 11), ({n},), ({n}, 3), ({n}, 3), got "
+        c = RECORD_COLUMNS
+        if record.shape != (n, c) or mass.shape != (n,) or v.shape != (n, 3) or drag.shape[0] not in (0, n):
+            raise ValueError(f"record, mass, v, drag: need shapes ({n}, {c}), ({n},), ({n}, 3), ({n}, 3), got "
                              f"{record.shape}, {mass.shape}, {v.shape}, {drag.shape}")  # fmt: skip
         return gas_forces_into(
-            self.law_id, self.ma.cell_dofs, self.cell, self.w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig,
+            self.law, self.ma.cell_dofs, self.cell, self.w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig,
             self.rho_g, self.mu_g, self.pressure_gradient, _NONE1, drag, _NONE3, _NONE1, record, mass,
         )  # fmt: skip
 

@@ -3,10 +3,10 @@
 A checkpoint is one uncompressed NumPy `.npz` archive `checkpoints/checkpoint_<step>.npz` holding named
 arrays (gas nodal fields with their node coordinates, particle arrays, contact history keyed by global
 ids, counters) and a JSON `meta` record (time, step, febed version, rank count, the resolved case). Rank 0
-writes it to a temporary name in the same folder, flushes and fsyncs it, and renames it into place: a
-file with a final name is always complete, so a `kill -9` while writing leaves at worst a stray temporary
-file (`.checkpoint_<step>.npz.*.tmp`, removed by `remove_temporaries` when the next run of the folder
-starts) and the previous checkpoint still valid. Only the newest `keep` checkpoints are kept; older ones
+writes it to a temporary name in the same folder, flushes and fsyncs it, and renames it into place
+(`febed.io.atomic`): a file with a final name is always complete, so a `kill -9` while writing leaves at worst
+a stray temporary file (`.checkpoint_<step>.npz.*.tmp`, removed by `remove_temporaries` when the next run of
+the folder starts) and the previous checkpoint still valid. Only the newest `keep` checkpoints are kept; older ones
 are removed after the new one is in place, so a failed write (a full disk) never costs the last good one.
 
 Arrays are gathered to rank 0 in a layout that does not depend on the rank count (particles by global id,
@@ -20,9 +20,7 @@ digest of its case's physics keys, its mesh (node count and bounding box of the 
 from __future__ import annotations
 
 import json
-import os
 import re
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -30,6 +28,8 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed.io import atomic
+from febed.io.atomic import atomic_open
 from febed.schema import physics_digest
 
 FORMAT = "febed-checkpoint-1"
@@ -71,22 +71,8 @@ def write_checkpoint(folder: Path, arrays: dict[str, np.ndarray], meta: dict, ke
 
 
 def _atomic_npz(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            _savez(f, {"__meta__": np.array(json.dumps(meta)), **arrays})
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_open(path, "wb") as f:
+        _savez(f, {"__meta__": np.array(json.dumps(meta)), **arrays})
 
 
 def _savez(f, arrays: dict[str, np.ndarray]) -> None:
@@ -126,17 +112,7 @@ def remove_temporaries(folder: Path) -> list[Path]:
     Call it only while holding the run folder's lock (`febed.io.rundir.lock_output`): no other process then
     writes checkpoints there. Returns the files removed.
     """
-    folder = Path(folder)
-    if not folder.is_dir():
-        return []
-    gone = []
-    for p in sorted(folder.glob(".checkpoint_*.npz.*.tmp")):
-        try:
-            p.unlink()
-            gone.append(p)
-        except FileNotFoundError:
-            pass
-    return gone
+    return atomic.remove_temporaries(folder, "checkpoint_*.npz")
 
 
 def list_checkpoints(folder: Path) -> list[Path]:

@@ -1,42 +1,25 @@
 """Particle output that ParaView opens: one VTK XML PolyData file (.vtp) per output + a .pvd collection.
 
 Each .vtp holds the particle centres as vertices with point data velocity (m/s), angular velocity (rad/s),
-diameter (m), n_orig and gid, base64-encoded binary. Files are written atomically (temporary name, then
-os.replace) and the .pvd is rewritten after every output, so a run stopped at any moment leaves a readable
-series; a write that fails (OSError naming the file) adds nothing to it. With MPI, rank 0 gathers the
-particles and writes (fine up to millions of particles).
+diameter (m), n_orig and gid, base64-encoded binary. Files are written atomically (`febed.io.atomic`) and the
+.pvd is rewritten after every output, so a run stopped at any moment leaves a readable series; a write that
+fails (OSError naming the file) adds nothing to it. With MPI, rank 0 gathers the particles and writes (fine
+up to millions of particles).
 """
 
 from __future__ import annotations
 
 import base64
 import os
-import tempfile
 from pathlib import Path
 
 from mpi4py import MPI
 
 import numpy as np
 
+from febed.io.atomic import atomic_write_bytes
+
 _VTK_TYPES = {np.dtype(np.float64): "Float64", np.dtype(np.int64): "Int64", np.dtype(np.int32): "Int32"}
-
-
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a temporary file; an OSError names `path` (not the temporary file)."""
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    except OSError as e:
-        raise OSError(e.errno, e.strerror, str(path)) from None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException as e:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        if isinstance(e, OSError):
-            raise OSError(e.errno, e.strerror, str(path)) from None
-        raise
 
 
 def _data_array(name: str, a: np.ndarray, ncomp: int = 1) -> str:
@@ -107,14 +90,14 @@ class ParticleWriter:
         path = self.outdir / fname
         if self.comm.rank == 0:  # the entry is added once its files are written (a failed write leaves none)
             pos = local.pop("pos")
-            _atomic_bytes(path, vtp_bytes(pos, local))
+            atomic_write_bytes(path, vtp_bytes(pos, local))
             entries = [*self.entries, entry]
             rows = "".join(f'<DataSet timestep="{tt:.9g}" part="0" file="{f}"/>\n' for tt, f in entries)
             pvd = (
                 '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
                 f"<Collection>\n{rows}</Collection>\n</VTKFile>\n"
             )
-            _atomic_bytes(self.outdir / f"{self.name}.pvd", pvd.encode("ascii"))
+            atomic_write_bytes(self.outdir / f"{self.name}.pvd", pvd.encode("ascii"))
         self.entries.append(entry)
         return path
 

@@ -16,6 +16,8 @@ from pathlib import Path
 
 from mpi4py import MPI
 
+from febed.io.atomic import atomic_open
+
 
 class ProbeFile:
     """A CSV time series with fixed columns (`time` + `columns`), appended row by row on rank 0."""
@@ -51,12 +53,8 @@ class ProbeFile:
             raise ValueError(f"{self.path}: its columns {rows[0] if rows else []} differ from {self.columns}")
         body = [r for r in rows[1:] if r and float(r[0]) <= t * (1 + 1e-12) + 1e-300]
         keep = [rows[0]] + body[:keep_rows]
-        tmp = self.path.with_suffix(".csv.tmp")
-        with open(tmp, "w", newline="") as f:
+        with atomic_open(self.path, "w", newline="") as f:
             f.write("\n".join(",".join(r) for r in keep) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.path)
         return len(keep) - 1
 
     def write(self, time: float, values: dict[str, float]) -> None:

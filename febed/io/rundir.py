@@ -32,13 +32,13 @@ import os
 import shutil
 import socket
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 from mpi4py import MPI
 
 from febed import __version__
+from febed.io.atomic import atomic_write_text
 from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta
 
 RESOLVED_CASE = "case.resolved.toml"
@@ -49,22 +49,6 @@ LOCK_FILE = ".febed.lock"
 
 class OutputError(RuntimeError):
     """The output folder cannot be used (exists, not writable, ...)."""
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write `text` to `path` through a temporary file + fsync + rename: never a half-written file."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def write_status(outdir: Path, state: str, time: float, end_time: float, step: int = 0, message: str = "",

@@ -13,9 +13,14 @@ Every run mode steps its own solver; what happens between and around the steps i
   A second signal stops at once (`StopNow`), naming the newest checkpoint there is. Under Open MPI's mpirun,
   SIGUSR1 is the one to send: mpirun forwards it to the ranks as it is, whereas on SIGTERM or SIGINT it kills
   them after a short grace that a step on a loaded machine can outlast.
-* A failure (`febed.solver.RunFailure`) is recorded by `record_failure`: the last state that passed the
-  health checks (`run.good`) is written as a checkpoint, status.json says "failed" with the message, and
-  `febed run` exits non-zero.
+* A failure of the simulation (`febed.solver.RunFailure`; the DEM's `DEMFailure`) is what the health checks
+  found (a non-finite value, a particle lost, an overlap or a void fraction beyond its limit, a pressure solve
+  that diverged). It is recorded by `record_failure`: the last state that passed the checks (`run.good`) is
+  written as a checkpoint, status.json says "failed" with the message, and `febed run` exits non-zero.
+* Any other exception raised while a run steps is a bug in febed, not a failure of the simulation:
+  `run_to_end` records it by `record_internal_error` (the traceback in the log, the last good state as a
+  checkpoint on one process, status.json "failed" with a message saying it is an internal error) and raises
+  `InternalError`.
 * An output error (a full disk, permissions, an I/O error) while writing probes, fields, particles, a
   checkpoint or status.json stops the run on every rank (`guarded_write`, `OutputFailure`): the current
   state is written as a checkpoint if the disk takes it (the older ones are removed only after a newer one is
@@ -42,8 +47,9 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed.dem.solver import DEMFailure
 from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta
-from febed.io.rundir import STATUS_FILE, write_status
+from febed.io.rundir import LOG_FILE, STATUS_FILE, write_status
 from febed.solver import RunFailure
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # finish the step, checkpoint, stop
@@ -63,6 +69,13 @@ class StopNow(KeyboardInterrupt):
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+
+
+class InternalError(RuntimeError):
+    """A run stopped on an unexpected exception: a bug in febed, not a failure of the simulation.
+
+    The message names the exception and where the last good state is; the traceback is in the run's log.
+    """
 
 
 class OutputFailure(RunFailure):
@@ -221,7 +234,9 @@ def run_to_end(run, end: float) -> None:
     The stop signals are caught meanwhile (`catch_signals`). However the run ends, its files are closed and
     the handlers restored; an error closing them after another error is logged and does not hide the first.
     An output error (`OutputFailure`) is recorded by `record_output_failure`; a second stop signal
-    (`StopNow`) stops at once and becomes `Interrupted` (collective).
+    (`StopNow`) stops at once and becomes `Interrupted` (collective). Any exception other than a failure of
+    the simulation (`RunFailure`, `DEMFailure`) or a stop (`Interrupted`) is a bug: it is recorded by
+    `record_internal_error` and raised as `InternalError`.
     """
     restore_signals = run.catch_signals()
     closed, last_output = False, True
@@ -238,6 +253,11 @@ def run_to_end(run, end: float) -> None:
     except KeyboardInterrupt as e:
         last_output = False
         raise stopped_at_once(run, e) from None
+    except Exception as e:
+        last_output = False
+        if isinstance(e, (RunFailure, DEMFailure, Interrupted, InternalError)):
+            raise
+        raise record_internal_error(run, e) from e
     finally:
         try:
             if not closed:
@@ -282,6 +302,33 @@ def record_failure(run, error, collective: bool = True) -> None:
     where = f"; {write_good_state(run)}" if run.good is not None and collective else ""
     run.status("failed", f"{error}{where}", collective=False)
     run.log.error(f"run failed: {error}{where}")
+
+
+def record_internal_error(run, error: Exception, where: str = "") -> InternalError:
+    """Record a run stopped by an unexpected exception (a bug in febed); returns the `InternalError` to raise.
+
+    Logs the error with its traceback, writes the last good state as a checkpoint when the run is on one
+    process (on several, the other ranks may be waiting in a collective call: nothing collective is done and
+    `run.broken` is set) and sets the status to failed with a message saying it is an internal error, not a
+    failure of the simulation. `where`: when it happened ("in the gas step from t = ... s").
+    """
+    run.display.end()
+    if run.comm.size > 1:
+        run.broken = True
+    saved = ""
+    if run.good is not None and not getattr(run, "broken", False):
+        try:
+            saved = f"; {write_good_state(run)}"
+        except Exception as e:  # the same bug, maybe: the error to report is the first one
+            saved = f"; could not write the last good state: {type(e).__name__}: {e}"
+    what = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
+    message = (
+        f"internal error{' ' + where if where else ''}: {what} (a bug in febed, not a failure of the simulation: "
+        f"please report it with the traceback from {Path(run.outdir) / LOG_FILE}){saved}"
+    )
+    run.status("failed", message, collective=False)
+    run.log.error(f"run failed: {message}", exc_info=error)
+    return InternalError(message)
 
 
 def record_output_failure(run, error: OutputFailure) -> None:

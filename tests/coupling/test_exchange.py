@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from _coupling_meshes import mesh_and_arrays, random_points
 
+from febed.coupling.drag import RECORD_COLUMNS, RECORD_FORCE, RECORD_FP, RECORD_K, RECORD_SET, RECORD_VEL
 from febed.coupling.exchange import Coupler, solid_volume
 from febed.coupling.projection import neighbour_filter, per_volume, project, solid_fraction
 
@@ -51,13 +52,15 @@ def test_coupler_third_law(name):
     assert np.allclose(eps2, eps_p, rtol=1e-14, atol=0)
 
     # the solver's path: the same kernel writing each particle's record, and the shortest relaxation time
-    record = np.zeros((n, 11))
+    record = np.zeros((n, RECORD_COLUMNS))
     mass = rng.uniform(1e-6, 2e-6, n)
     drag = np.empty((n, 3))
     tau = cp.forces_into(u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record, mass, drag)
-    assert np.array_equal(record[:, 0], K2) and np.array_equal(record[:, 1:4], F_d2 + F_p2)
-    assert np.array_equal(record[:, 4:7], v) and np.array_equal(record[:, 7:10], F_p2)
-    assert np.all(record[:, 10] == 1.0) and np.array_equal(drag, F_d2)
+    assert np.array_equal(record[:, RECORD_K], K2) and np.array_equal(record[:, RECORD_FORCE], F_d2 + F_p2)
+    assert np.array_equal(record[:, RECORD_VEL], v) and np.array_equal(record[:, RECORD_FP], F_p2)
+    assert np.all(record[:, RECORD_SET] == 1.0) and np.array_equal(drag, F_d2)
+    columns = [RECORD_K, *range(11)[RECORD_FORCE], *range(11)[RECORD_VEL], *range(11)[RECORD_FP], RECORD_SET]
+    assert sorted(columns) == list(range(RECORD_COLUMNS))  # the names cover every column once
     assert tau == np.min(mass / np.maximum(K2, 1e-300))
     with pytest.raises(ValueError, match="record"):
         cp.forces_into(u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record[:, :10], mass)
