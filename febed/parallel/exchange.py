@@ -31,8 +31,10 @@ import numpy as np
 from numba import njit
 
 from febed.coupling.locate import FOUND, OUTSIDE_LOCAL, locate
+from febed.coupling.mesh_arrays import extract_mesh_arrays
 from febed.dem.particles import GID_LIMIT
 from febed.parallel.halo import HaloTable
+from febed.parallel.partition import cell_owners
 
 _GHOST_FLOATS = ("pos", "vel", "omega", "diameter", "mass", "inertia")
 _GHOST_INTS = ("gid", "n_orig", "material")
@@ -120,9 +122,6 @@ class ParticleExchange:
     @classmethod
     def from_mesh(cls, mesh, Q=None, depth: float = 1.0) -> ParticleExchange:
         """The exchange of a DOLFINx mesh (collective: extracts the coupling's mesh arrays)."""
-        from febed.coupling.mesh_arrays import extract_mesh_arrays
-        from febed.parallel.partition import cell_owners
-
         ex = cls(extract_mesh_arrays(mesh, Q, depth=depth), cell_owners(mesh))
         ex.mesh = mesh
         return ex
