@@ -47,7 +47,7 @@ from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.weights import compute_weights
 from febed.dem.solver import DEMFailure, StopRequested
-from febed.io.checkpoint import FOLDER, load_checkpoint, write_checkpoint
+from febed.io.checkpoint import load_checkpoint
 from febed.io.fields import FieldWriter
 from febed.io.particles import ParticleWriter
 from febed.io.probes import ProbeFile
@@ -56,9 +56,9 @@ from febed.meshing import load_case_mesh
 from febed.parallel.exchange import balance_line
 from febed.runs.lifecycle import (
     OutputFailure,
+    RunMode,
     after_step,
     catch_stop_signals,
-    checkpoint_or_fail,
     close_after_error,
     close_files,
     guarded_write,
@@ -66,7 +66,6 @@ from febed.runs.lifecycle import (
     record_internal_error,
     run_to_end,
     stopped_mid_step,
-    write_run_status,
 )
 from febed.solver import RunFailure, build_solver
 
@@ -113,7 +112,7 @@ def bed_height(heights: np.ndarray, volumes: np.ndarray, fraction: float, comm=M
     return float(h[order][min(k, h.size - 1)])
 
 
-class CoupledRun:
+class CoupledRun(RunMode):
     """A coupled run with its output: `advance_to(t)` steps the solver, writing probes, output, checkpoints."""
 
     def __init__(self, case, outdir: Path, log, comm=MPI.COMM_WORLD, md=None, restart=None):
@@ -310,33 +309,31 @@ class CoupledRun:
         self.log.info(balance_line(self.comm, dem.particles.n_owned, dem.pairs.size))
 
     # ---------------------------------------------------------------------------------- checkpoints
+    STEP = "gas step"
+
+    def sim_time(self) -> float:
+        """The coupled solver's simulated time (s)."""
+        return self.solver.t
+
+    def steps_done(self) -> int:
+        """Gas steps made."""
+        return self.solver.steps
+
+    def capture(self) -> tuple[dict, dict]:
+        """(arrays, meta) of the run's state (`febed.restart.capture`)."""
+        return rs.capture(self)
+
     def checkpoint(self, state=None) -> Path:
-        """Write a checkpoint of the current state (or of `state` = (arrays, meta) from `restart.capture`)."""
-        s = self.solver
+        """`RunMode.checkpoint`, its time counted as output."""
         t0 = time.perf_counter()
-        arrays, meta = state if state is not None else rs.capture(self)
-        meta = {**meta, "case": self.case.to_toml()}
-        gathered = rs.gather(arrays, meta, self.comm)
-        path = checkpoint_or_fail(
-            write_checkpoint, self.outdir / FOLDER, gathered, meta, self.case.output.keep_checkpoints,
-            self.comm,
-        )  # fmt: skip
-        self.checkpoint_written = (meta["time"], path)
-        if self.comm.size > 1 and state is None:  # go on from the layout a restart would have (febed.restart)
-            rs.reload_particles(self, self.comm.bcast(gathered, root=0), meta)
-        self._last_checkpoint = time.perf_counter()
-        self.next["checkpoint"] = s.t + self.case.output.checkpoint_interval
-        self.log.info(f"checkpoint at t = {meta['time']:.6g} s (gas step {meta['step']}): {path}")
-        s.timers.output += time.perf_counter() - t0
+        path = super().checkpoint(state)
+        self.solver.timers.output += time.perf_counter() - t0
         return path
 
-    def status(self, state: str, message: str = "", collective: bool = True) -> None:
-        """Write `status.json`: state (running / finished / failed / interrupted), time, end time, message.
-
-        See `write_run_status` for `collective`.
-        """
-        s = self.solver
-        write_run_status(self.outdir, state, s.t, self.case.run.end_time, s.steps, message, self.comm, collective)
+    def _checkpointed(self, gathered, meta: dict, state) -> None:
+        if self.comm.size > 1 and state is None:  # go on from the layout a restart would have (febed.restart)
+            rs.reload_particles(self, self.comm.bcast(gathered, root=0), meta)
+        self.next["checkpoint"] = self.solver.t + self.case.output.checkpoint_interval
 
     # ---------------------------------------------------------------------------------------- loop
     def progress(self, end: float) -> None:

@@ -26,23 +26,22 @@ from febed import restart as rs
 from febed.bed import build_dem, dem_from_case, particle_exchange, walls_from_mesh
 from febed.dem.particles import Particles
 from febed.dem.solver import DEM, DEMFailure, StopRequested
-from febed.io.checkpoint import FOLDER, load_checkpoint, write_checkpoint
+from febed.io.checkpoint import load_checkpoint
 from febed.io.particles import ParticleWriter
 from febed.io.progress import Progress, RateMeter
 from febed.meshing import load_case_mesh
 from febed.parallel.exchange import balance_line
 from febed.runs.lifecycle import (
+    RunMode,
     after_step,
     catch_stop_signals,
-    checkpoint_or_fail,
     guarded_write,
     record_failure,
     run_to_end,
-    write_run_status,
 )
 
 
-class DEMRun:
+class DEMRun(RunMode):
     """A pure-DEM run with its output: `advance_to(t)` steps the DEM, writing particles and checkpoints.
 
     Checkpoints (`checkpoints/checkpoint_<step>.npz`, the same files as a coupled run's: the DEM state by
@@ -104,27 +103,19 @@ class DEMRun:
         }
         return rs.dem_arrays(self.dem), meta
 
-    def checkpoint(self, state=None) -> Path:
-        """Write a checkpoint of the current state, or of `state` from `capture` (collective)."""
-        arrays, meta = state if state is not None else self.capture()
-        meta = {**meta, "case": self.case.to_toml()}
-        path = checkpoint_or_fail(
-            write_checkpoint, self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta,
-            self.case.output.keep_checkpoints, self.comm,
-        )  # fmt: skip
-        self.checkpoint_written = (meta["time"], path)
-        self._last_checkpoint = time.perf_counter()
+    STEP = "DEM step"
+
+    def sim_time(self) -> float:
+        """The DEM's simulated time (s)."""
+        return self.dem.time
+
+    def steps_done(self) -> int:
+        """DEM steps made."""
+        return self.dem.steps
+
+    def _checkpointed(self, gathered, meta: dict, state) -> None:
         self.next_ckpt = self.dem.time + self.case.output.checkpoint_interval
-        self.log.info(f"checkpoint at t = {meta['time']:.6g} s (DEM step {meta['step']}): {path}")
-        return path
 
-    def status(self, state: str, message: str = "", collective: bool = True) -> None:
-        """Write `status.json` (running / finished / failed / interrupted) at the DEM's time (`write_run_status`)."""
-        dem = self.dem
-        end = self.case.run.end_time
-        write_run_status(self.outdir, state, dem.time, end, dem.steps, message, self.comm, collective)
-
-    # ------------------------------------------------------------------------------------- loop
     def output(self, scheduled: bool = True) -> None:
         """Write the particles, move the next output time on if `scheduled`, keep the state as the last good one.
 

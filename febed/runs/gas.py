@@ -30,26 +30,25 @@ import numpy as np
 from febed import restart as rs
 from febed.gas.pressure import PressureSolveError
 from febed.gas.vans import VANSSolver
-from febed.io.checkpoint import FOLDER, load_checkpoint, write_checkpoint
+from febed.io.checkpoint import load_checkpoint
 from febed.io.fields import FieldWriter
 from febed.io.progress import Progress, RateMeter
 from febed.meshing import load_case_mesh
 from febed.runs.lifecycle import (
+    RunMode,
     after_step,
     catch_stop_signals,
-    checkpoint_or_fail,
     close_files,
     guarded_write,
     record_failure,
     run_to_end,
-    write_run_status,
 )
 from febed.solver import RunFailure
 
 GOOD_EVERY = 10  # gas steps between the copies of the state kept as the last good one (and at every output)
 
 
-class GasRun:
+class GasRun(RunMode):
     """A gas-only run with its output: `advance_to(t)` steps the gas, writing fields, checkpoints, progress."""
 
     def __init__(self, case, outdir: Path, log, comm=MPI.COMM_WORLD, eps=None, mesh_data=None, restart=None):
@@ -103,24 +102,18 @@ class GasRun:
         }
         return rs.gas_arrays(s), meta
 
-    def checkpoint(self, state=None) -> Path:
-        """Write a checkpoint of the current state, or of `state` from `capture` (collective)."""
-        arrays, meta = state if state is not None else self.capture()
-        meta = {**meta, "case": self.case.to_toml()}
-        path = checkpoint_or_fail(
-            write_checkpoint, self.outdir / FOLDER, rs.gather(arrays, meta, self.comm), meta,
-            self.case.output.keep_checkpoints, self.comm,
-        )  # fmt: skip
-        self.checkpoint_written = (meta["time"], path)
-        self._last_checkpoint = time.perf_counter()
-        self.next_ckpt = self.solver.t + self.case.output.checkpoint_interval
-        self.log.info(f"checkpoint at t = {meta['time']:.6g} s (gas step {meta['step']}): {path}")
-        return path
+    STEP = "gas step"
 
-    def status(self, state: str, message: str = "", collective: bool = True) -> None:
-        """Write `status.json` (running / finished / failed / interrupted; `lifecycle.write_run_status`)."""
-        end = self.case.run.end_time
-        write_run_status(self.outdir, state, self.solver.t, end, self.steps, message, self.comm, collective)
+    def sim_time(self) -> float:
+        """The gas's simulated time (s)."""
+        return self.solver.t
+
+    def steps_done(self) -> int:
+        """Gas steps made."""
+        return self.steps
+
+    def _checkpointed(self, gathered, meta: dict, state) -> None:
+        self.next_ckpt = self.solver.t + self.case.output.checkpoint_interval
 
     def problem(self) -> str | None:
         """What is wrong with the gas fields after a step (the same on every rank; collective), or None."""

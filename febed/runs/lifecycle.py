@@ -47,8 +47,9 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed import restart as rs
 from febed.dem.solver import DEMFailure
-from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta
+from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta, write_checkpoint
 from febed.io.rundir import LOG_FILE, STATUS_FILE, write_status
 from febed.solver import RunFailure
 
@@ -153,6 +154,53 @@ def checkpoint_or_fail(write, *args):
         return write(*args)
     except CheckpointError as e:
         raise OutputFailure(str(e), checkpoint=True) from None
+
+
+class RunMode:
+    """What every run mode (coupled, DEM, gas) does the same way: its checkpoints and its `status.json`.
+
+    A mode sets `case`, `outdir`, `log` and `comm`, and gives `capture()` -> (arrays, meta) of its state (the
+    `febed.restart` format), `sim_time()` (s) and `steps_done()` at its own clock, `STEP` (what a step is called
+    in the log), and `_checkpointed(gathered, meta, state)` for what it does after a checkpoint is written.
+    """
+
+    STEP = "step"
+
+    def sim_time(self) -> float:
+        """The simulated time (s) of the mode's clock."""
+        raise NotImplementedError
+
+    def steps_done(self) -> int:
+        """The steps of the mode's clock done so far."""
+        raise NotImplementedError
+
+    def capture(self) -> tuple[dict, dict]:
+        """(arrays, meta) of the current state, as `febed.restart` stores them."""
+        raise NotImplementedError
+
+    def _checkpointed(self, gathered, meta: dict, state) -> None:
+        """After a checkpoint of `meta` is written (collective): e.g. the time of the next one."""
+
+    def checkpoint(self, state=None) -> Path:
+        """Write a checkpoint of the current state, or of `state` = (arrays, meta) from `capture` (collective)."""
+        arrays, meta = state if state is not None else self.capture()
+        meta = {**meta, "case": self.case.to_toml()}
+        gathered = rs.gather(arrays, meta, self.comm)
+        path = checkpoint_or_fail(
+            write_checkpoint, self.outdir / FOLDER, gathered, meta, self.case.output.keep_checkpoints, self.comm
+        )
+        self.checkpoint_written = (meta["time"], path)
+        self._checkpointed(gathered, meta, state)
+        self._last_checkpoint = time.perf_counter()
+        self.log.info(f"checkpoint at t = {meta['time']:.6g} s ({self.STEP} {meta['step']}): {path}")
+        return path
+
+    def status(self, state: str, message: str = "", collective: bool = True) -> None:
+        """Write `status.json` (running / finished / failed / interrupted) at the mode's clock (`write_run_status`)."""
+        write_run_status(
+            self.outdir, state, self.sim_time(), self.case.run.end_time, self.steps_done(), message, self.comm,
+            collective,
+        )  # fmt: skip
 
 
 # -------------------------------------------------------------------------------------------------- status
