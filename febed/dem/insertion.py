@@ -7,7 +7,6 @@ saved (.npz, written atomically) so a bed is packed once and loaded by later cas
 from __future__ import annotations
 
 import math
-import os
 import time
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import numpy as np
 from numba import njit
 
 from febed.dem.particles import GID_LIMIT, Particles
+from febed.io.atomic import atomic_open
 
 
 def count_from_mass(bed_mass: float, diameter: float, density: float) -> int:
@@ -172,15 +172,14 @@ def settle(dem, energy: float, max_time: float = 5.0, chunk: int = 200, log=None
 
 
 def save_bed(path, particles: Particles, **meta) -> Path:
-    """Write the owned particles to `path` (.npz) atomically (temporary name, then os.replace)."""
+    """Write the owned particles to `path` (.npz) atomically (`febed.io.atomic`: temporary file, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
     data = particles.to_dict()
     for k, v in meta.items():
         data[f"meta_{k}"] = np.asarray(v)
-    np.savez(tmp, **data)
-    os.replace(tmp, path)
+    with atomic_open(path, "wb") as f:
+        np.savez(f, **data)
     return path
 
 
