@@ -18,6 +18,29 @@ def cell_owners(mesh) -> np.ndarray:
     return own
 
 
+def _destinations(graph, owner, offset: int, ghosting: bool):
+    """The destinations DOLFINx's partitioner returns for this rank's cells of the dual `graph`.
+
+    Cell c (global index offset + c) goes first to `owner(global index)`, then, with `ghosting`, to the other
+    owners of its neighbours.
+    """
+    from dolfinx import cpp
+
+    own = owner(np.arange(offset, offset + graph.num_nodes, dtype=np.int64))
+    data = []
+    offs = [0]
+    for c in range(graph.num_nodes):
+        d = [int(own[c])]
+        if ghosting:
+            for nb in graph.links(c):
+                r = int(owner(np.int64(nb)))
+                if r not in d:
+                    d.append(r)
+        data += d
+        offs.append(len(data))
+    return cpp.graph.AdjacencyList_int32(np.array(data, dtype=np.int32), np.array(offs, dtype=np.int32))
+
+
 def slab_partitioner(period: int | None = None):
     """A DOLFINx cell partitioner giving rank r the r-th block of global cell indices, with ghosts.
 
@@ -30,7 +53,6 @@ def slab_partitioner(period: int | None = None):
     if period is not None and period < 1:
         raise ValueError(f"period: must be >= 1 (cells along the fastest axis: x in 3D, y in 2D), got {period}")
     import dolfinx.mesh
-    from dolfinx import cpp
 
     def part(comm, nparts, graph, ghosting):
         n = graph.num_nodes
@@ -40,19 +62,7 @@ def slab_partitioner(period: int | None = None):
         def owner(c):
             return (c % period) * nparts // period if period else c * nparts // tot
 
-        own = owner(np.arange(off, off + n, dtype=np.int64))
-        data = []
-        offs = [0]
-        for c in range(n):
-            d = [int(own[c])]
-            if ghosting:
-                for nb in graph.links(c):
-                    r = int(owner(int(nb)))
-                    if r not in d:
-                        d.append(r)
-            data += d
-            offs.append(len(data))
-        return cpp.graph.AdjacencyList_int32(np.array(data, dtype=np.int32), np.array(offs, dtype=np.int32))
+        return _destinations(graph, owner, off, ghosting)
 
     return dolfinx.mesh.create_cell_partitioner(part)
 
@@ -78,7 +88,6 @@ def block_partitioner(cells, blocks):
     if min(cells) < 1 or min(blocks) < 1 or any(b > c for b, c in zip(blocks, cells, strict=True)):
         raise ValueError(f"blocks: need 1 <= blocks <= cells along each axis, got blocks {blocks} for cells {cells}")
     import dolfinx.mesh
-    from dolfinx import cpp
 
     nb = int(np.prod(blocks))
 
@@ -98,18 +107,6 @@ def block_partitioner(cells, blocks):
             raise ValueError(f"blocks: {blocks} make {nb} blocks, but the mesh is partitioned on {nparts} ranks")
         n = graph.num_nodes
         off = comm.exscan(n) or 0
-        own = owner(np.arange(off, off + n, dtype=np.int64))
-        data = []
-        offs = [0]
-        for c in range(n):
-            d = [int(own[c])]
-            if ghosting:
-                for nbr in graph.links(c):
-                    r = int(owner(np.int64(nbr)))
-                    if r not in d:
-                        d.append(r)
-            data += d
-            offs.append(len(data))
-        return cpp.graph.AdjacencyList_int32(np.array(data, dtype=np.int32), np.array(offs, dtype=np.int32))
+        return _destinations(graph, owner, off, ghosting)
 
     return dolfinx.mesh.create_cell_partitioner(part)
