@@ -246,11 +246,10 @@ class CoupledRun(RunMode):
         vals.update({f"p_{k}": v for k, v in sec.items()})
         if s.groups is not None:
             tot = s.groups.total
-            own = [n, int(P.n_orig[:n].sum()), tot.crushed, tot.merged, tot.crush_deferred + tot.merge_deferred]
+            own = [n, tot.crushed, tot.merged, tot.crush_deferred + tot.merge_deferred]
             counts = self.comm.allreduce(np.array(own, dtype=np.int64))
-            vals.update(
-                zip(("groups", "originals", "crushed", "merged", "events_deferred"), counts.tolist(), strict=True)
-            )
+            vals.update(zip(("groups", "crushed", "merged", "events_deferred"), counts.tolist(), strict=True))
+            vals["originals"] = self.comm.allreduce(float(P.n_orig[:n].sum()))  # fractions with divisible originals
             vals["event_energy"] = tot.energy_injected  # measured on the whole bed (every rank holds the total)
         return vals
 

@@ -25,6 +25,9 @@ from febed.registry import Registry
 CONTACT_LAWS = Registry("contact law", "febed.dem.contact")
 INTEGRATORS = Registry("integrator", "febed.dem.integrate")
 DRAG_LAWS = Registry("drag law", "febed.coupling.drag")
+# PCPM's smallest group (`coarse_grain.min_group`): 1 original, or a power-of-two fraction of one (divisible
+# originals), so that every group's count is a multiple of it and sums of counts stay exact in floating point.
+MIN_GROUPS = tuple(2.0**-j for j in range(7))
 
 _TYPE_NAMES = {float: "a number", int: "an integer", bool: "true or false", str: "a string", list: "a list"}
 
@@ -153,7 +156,14 @@ SCHEMA: dict[str, dict[str, Param]] = {
             str,
             choices=("cfd-dem", "dem", "gas", "one-way"),
         ),
-        "end_time": Param(1.0, "s", "simulated time at which the run stops", float, lo=0.0, lo_open=True),
+        "end_time": Param(
+            1.0,
+            "s",
+            "the run stops at the end of the first gas step at or after this simulated time",
+            float,
+            lo=0.0,
+            lo_open=True,
+        ),
         "gravity": Param(9.81, "m/s^2", "gravity magnitude, along -z in 3D and -y in 2D", float, lo=0.0),
         "seed": Param(12345, "-", "random seed (insertion, coarse-grain placement)", int, lo=0),
         "max_overlap": Param(
@@ -396,6 +406,15 @@ SCHEMA: dict[str, dict[str, Param]] = {
             0.9997, "", "pcpm: void fraction at which d_cl = d_original (seed 000 eq 36)", float, lo=0.0, hi=1.0
         ),
         "max_group": Param(27, "originals", "pcpm: largest group after merging", int, lo=1),
+        "min_group": Param(
+            1.0,
+            "originals",
+            "pcpm: smallest group a crush may make; 1 keeps the originals whole, 1/2, 1/4, ... 1/64 makes them "
+            "divisible into pieces of whole multiples of it (seed 000 sec 4)",
+            float,
+            lo=2.0**-6,
+            hi=1.0,
+        ),
         "overlap_tolerance": Param(
             0.05,
             "",

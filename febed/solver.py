@@ -39,7 +39,15 @@ from numba import njit
 
 from febed.bed import build_dem
 from febed.coarse import setup as coarse
-from febed.coupling.drag import RECORD_COLUMNS, RECORD_FORCE, RECORD_FP, RECORD_K, RECORD_SET, RECORD_VEL
+from febed.coupling.drag import (
+    RECORD_COLUMNS,
+    RECORD_FORCE,
+    RECORD_FP,
+    RECORD_K,
+    RECORD_SET,
+    RECORD_VEL,
+    closure_sizes,
+)
 from febed.coupling.exchange import Coupler
 from febed.coupling.locate import OUTSIDE_DOMAIN, OUTSIDE_LOCAL
 from febed.coupling.mesh_arrays import extract_mesh_arrays
@@ -383,12 +391,10 @@ class CoupledSolver:
         return f" (now largest between particles {int(P.gid[a])} and {int(P.gid[b])} near {P.pos[a].tolist()} m)"
 
     def _originals(self):
-        """Diameter (m) and count (int64) of the original particles each particle stands for (views if plain)."""
+        """Closure diameter (m) and count of each owned particle (`febed.coupling.drag.closure_sizes`)."""
         P = self.dem.particles
         n = P.n_owned
-        n_orig = P.n_orig[:n]
-        d = P.diameter[:n]
-        return (d if n_orig.max(initial=1) == 1 else d / np.cbrt(n_orig.astype(np.float64))), n_orig
+        return closure_sizes(P.diameter[:n], P.n_orig[:n])
 
     def fluid_state(self, relocate: bool = True):
         """Drag coefficient K_p (kg/s), drag F_D and pressure-gradient force F_P (N, 3) per owned particle.

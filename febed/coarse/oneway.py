@@ -23,7 +23,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from febed.coupling.drag import drag_forces, get_drag_law
+from febed.coupling.drag import closure_sizes, drag_forces, get_drag_law
 from febed.gas.prescribed import PrescribedGas
 from febed.schema import check_fields, param, schema_field
 
@@ -65,8 +65,7 @@ class OneWay:
         n = P.n_owned
         x = P.pos[:n]
         v = P.vel[:n]
-        n_orig = P.n_orig[:n]
-        d_orig = P.diameter[:n] if n_orig.max(initial=1) == 1 else P.diameter[:n] / np.cbrt(n_orig.astype(float))
+        d_orig, n_orig = closure_sizes(P.diameter[:n], P.n_orig[:n])
         u = self.gas.velocity(x, self.t)
         K, F = drag_forces(self.law, np.ones(n), u, v, d_orig, n_orig, self.gas.density, self.gas.viscosity)
         tau = P.mass[:n] / np.maximum(K, 1e-300)

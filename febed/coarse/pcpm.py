@@ -1,9 +1,15 @@
 r"""Dynamic coarse grain (PCPM): particle-groups that crush and merge, seed 000 sec 2.3.
 
-A group is an integer count n >= 1 of original particles (diameter d_O, material density ρ_p): diameter
-d_O n^{1/3}, mass n m_O, `Particles.n_orig` = n; the drag is n times the drag on one original at the group's
-velocity (`febed.coupling.drag`, the Coupler passes d_O = d / n^{1/3}). `GroupDynamics.update` is called by the
-coupled loop once per gas step:
+A group is a count n of original particles (diameter d_O, material density ρ_p): diameter d_O n^{1/3}, mass
+n m_O, `Particles.n_orig` = n; the drag is n times the drag on one original at the group's velocity
+(`febed.coupling.drag`, the Coupler passes d_O = d / n^{1/3}). n is a whole number >= 1 by default. With
+divisible originals (`min_group` = 2^-j < 1, seed 000 sec 4: PCPM at l = 1 "under the assumption that the
+particles are divisible") a crush may also split an original, down to pieces of `min_group` of one (diameter
+d_O min_group^{1/3}); every n is then a multiple of `min_group`, so sums of n stay exact in floating point. A
+piece (n < 1) is a particle of its own: its drag is that of one sphere of its diameter
+(`febed.coupling.drag.closure_sizes`), its contacts follow the same per-pair scaling as groups (k_n l², with l³
+the pair's effective mass over an original pair's). `GroupDynamics.update` is called by the coupled loop once
+per gas step:
 
 1. d_cl per group (eqs 32-39, `equivalent_diameter`): eq 37 read as power per unit mass,
    E_st = F_drag · u / m (W/kg); E_cc of eq 38 from the current contacts (optional, `contact_power`);
@@ -16,8 +22,9 @@ Choices where the paper is silent (documented and tested):
 * How often: once per call of `update`. The coupled loop calls it at the gas steps that cross a multiple of
   `event_interval` (`due`), by default a tenth of τ_mf = U_mf/g, the relaxation time of a group at minimum
   fluidization (see `GroupDynamics.__init__`), and `update` evaluates every `interval`-th of those calls.
-* Crush sizes in integers: n_new - 1 = floor(d²/d_cl²) children of k = max(1, floor((d_cl/d_O)³)) originals, the
-  remainder n - (n_new - 1) k >= 1 in the last child (eqs 41-43); a single original never crushes.
+* Crush sizes in whole units (an original, or `min_group` of one): n_new - 1 = floor(d²/d_cl²) children of
+  k = max(1, floor((d_cl/d_u)³)) units of diameter d_u, the remainder n - (n_new - 1) k >= 1 unit in the last
+  child (eqs 41-43); a single unit never crushes.
 * Where children go: centres in the parent's sphere (disk in 2D): best of `tries` random draws per child
   (largest gap to the siblings placed), then the siblings are relaxed apart with their centres kept in the
   parent's sphere (until apart with `conserve_energy`, else to half the tolerance); after 4 failed attempts the
@@ -55,8 +62,11 @@ import numpy as np
 
 from febed.coarse.pcpm_kernels import NO_CRUSH, crush_sizes, equivalent_diameter, group_events
 from febed.dem.forces import contact_power
+from febed.schema import MIN_GROUPS
 
-__all__ = ["NO_CRUSH", "EventStats", "GroupDynamics", "crush_sizes", "equivalent_diameter", "u_mf_wen_yu"]
+__all__ = [
+    "MIN_GROUPS", "NO_CRUSH", "EventStats", "GroupDynamics", "crush_sizes", "equivalent_diameter", "u_mf_wen_yu",
+]  # fmt: skip
 
 
 def u_mf_wen_yu(d: float, rho_p: float, rho_g: float, mu_g: float, g: float = 9.81) -> float:
@@ -73,7 +83,8 @@ class EventStats:
     """What one `GroupDynamics.update` did.
 
     Attributes:
-        groups: particles (groups) after the update; originals: Σ n_orig (unchanged by events).
+        groups: particles (groups) after the update; originals: Σ n_orig (unchanged by events; fractional on a
+            rank when the originals are divisible).
         crushed: groups crushed; children: groups they became; merged: merge events (2 groups -> 1).
         crush_deferred, merge_deferred: events refused for overlap (or capacity); conflicts: events that waited
             because an earlier event of the same update touched their region.
@@ -83,7 +94,7 @@ class EventStats:
     """
 
     groups: int = 0
-    originals: int = 0
+    originals: float = 0.0
     crushed: int = 0
     children: int = 0
     merged: int = 0
@@ -106,12 +117,15 @@ class GroupDynamics:
     """Crushing and merging of particle-groups (seed 000 sec 2.3) driven by the local flow; see module docstring."""
 
     def __init__(self, d_orig: float, rho_p: float, rho_g: float, mu_g: float, eps_mf: float, gravity: float = 9.81,
-                 u_mf: float | None = None, eps_max: float = 0.9997, max_group: int = 27,
+                 u_mf: float | None = None, eps_max: float = 0.9997, max_group: int = 27, min_group: float = 1.0,
                  overlap_tolerance: float = 0.05, merge_tolerance: float = 0.01, crush: bool = True,
                  merge: bool = True, contact_power: bool = True, tries: int = 32, interval: int = 1,
                  event_interval: float | None = None, measure_energy: bool = True, conserve_energy: bool = True,
                  seed: int = 12345):  # fmt: skip
         """Set the original particle (d_orig m, rho_p kg/m^3), gas (rho_g, mu_g) and the model's parameters.
+
+        min_group: smallest group a crush may make, in originals: 1 (originals are whole), or 1/2, 1/4, ... 1/64
+            (divisible originals, seed 000 sec 4): an original crushes into pieces of whole multiples of it.
 
         event_interval: simulated time (s) between evaluations of the criteria in the coupled loop (`due`; 0:
             every gas step). None: 0.1 τ_mf with τ_mf = U_mf/g, the time a group takes to relax to the gas
@@ -129,6 +143,7 @@ class GroupDynamics:
         checks = {
             "d_orig": d_orig > 0, "rho_p": rho_p > rho_g > 0, "mu_g": mu_g > 0, "eps_mf": 0 < eps_mf < 1,
             "gravity": gravity > 0, "eps_max": eps_mf < eps_max < 1, "max_group": int(max_group) >= 1,
+            "min_group": min_group in MIN_GROUPS,
             "overlap_tolerance": 0 <= overlap_tolerance < 1, "merge_tolerance": merge_tolerance >= 0,
             "tries": int(tries) >= 1, "interval": int(interval) >= 1,
             "u_mf": u_mf is None or u_mf > 0, "event_interval": event_interval is None or event_interval >= 0,
@@ -137,8 +152,9 @@ class GroupDynamics:
         if bad:
             raise ValueError(
                 f"GroupDynamics: invalid {bad[0]} (need d_orig > 0, rho_p > rho_g > 0, mu_g > 0, 0 < eps_mf < "
-                "eps_max < 1, gravity > 0, max_group >= 1, 0 <= overlap_tolerance < 1, merge_tolerance >= 0, "
-                "tries >= 1, interval >= 1, u_mf > 0 or None, event_interval >= 0 or None)"
+                "eps_max < 1, gravity > 0, max_group >= 1, min_group one of 1, 1/2, ..., 1/64, "
+                "0 <= overlap_tolerance < 1, merge_tolerance >= 0, tries >= 1, interval >= 1, u_mf > 0 or None, "
+                "event_interval >= 0 or None)"
             )
         self.d_orig = float(d_orig)
         self.rho_p, self.rho_g, self.mu_g = float(rho_p), float(rho_g), float(mu_g)
@@ -146,6 +162,7 @@ class GroupDynamics:
         self.eps_mf, self.eps_max = float(eps_mf), float(eps_max)
         self.u_mf = float(u_mf) if u_mf is not None else u_mf_wen_yu(d_orig, rho_p, rho_g, mu_g, gravity)
         self.max_group = int(max_group)
+        self.min_group = float(min_group)
         self.tol = float(overlap_tolerance)
         self.merge_tol = float(merge_tolerance)
         self.crush, self.merge = bool(crush), bool(merge)
@@ -235,11 +252,11 @@ class GroupDynamics:
             dem.save_history()
             P.n_ghost = 0
             dem.touch()
-        cap = int(P.n_orig[:n].sum()) + n
+        cap = int(round(P.n_orig[:n].sum() / self.min_group)) + n  # at most one child per unit
         new_pos = np.empty((cap, 3))
         new_vel = np.empty((cap, 3))
         new_omega = np.empty((cap, 3))
-        new_n = np.empty(cap, dtype=np.int64)
+        new_n = np.empty(cap)
         removed = np.zeros(n, dtype=bool)
         counts = np.zeros(6, dtype=np.int64)
         W = dem.walls
@@ -247,8 +264,8 @@ class GroupDynamics:
         m = group_events(
             pos, np.ascontiguousarray(P.vel[:n]), np.ascontiguousarray(P.omega[:n]), diam,
             np.ascontiguousarray(P.mass[:n_all]), np.ascontiguousarray(P.n_orig[:n]), n, n_all, turn, self.d_orig,
-            dem.params.dim == 2, d_cl, self.crush, self.merge, self.max_group, self.merge_tol, self.tol, self.tries,
-            int(self.rng.integers(0, 2**31 - 1)), W.plane_p, W.plane_n, W.facets, W.nv,
+            self.min_group, dem.params.dim == 2, d_cl, self.crush, self.merge, self.max_group, self.merge_tol,
+            self.tol, self.tries, int(self.rng.integers(0, 2**31 - 1)), W.plane_p, W.plane_n, W.facets, W.nv,
             *self._springs(dem.pp), *self._springs(dem.pw), np.asarray(dem.gvec, dtype=float), self.conserve_energy,
             removed, new_pos, new_vel, new_omega, new_n, counts, de,
         )  # fmt: skip
@@ -257,12 +274,12 @@ class GroupDynamics:
         if m:
             dem.remove_particles(removed)
             nn = new_n[:m]
-            dem.add_particles(new_pos[:m], self.d_orig * np.cbrt(nn.astype(float)), self.rho_p, vel=new_vel[:m],
+            dem.add_particles(new_pos[:m], self.d_orig * np.cbrt(nn), self.rho_p, vel=new_vel[:m],
                               omega=new_omega[:m], n_orig=nn)  # fmt: skip
         if self.measure_energy and (ex.any(m > 0) if ex is not None else m):
             stats.energy_injected = self._energy(dem) - e0  # (global with MPI: every rank reports the total)
         stats.groups = P.n_owned
-        stats.originals = int(P.n_orig[: P.n_owned].sum())
+        stats.originals = float(P.n_orig[: P.n_owned].sum())
         return stats
 
     def update(self, dem, eps_at_p, u_at_p, f_drag) -> EventStats:
@@ -270,7 +287,7 @@ class GroupDynamics:
         self.calls += 1
         P = dem.particles
         if (self.calls - 1) % self.interval:
-            return EventStats(groups=P.n_owned, originals=int(P.n_orig[: P.n_owned].sum()))
+            return EventStats(groups=P.n_owned, originals=float(P.n_orig[: P.n_owned].sum()))
         stats = self.apply(dem, self.equivalent_diameter(dem, eps_at_p, u_at_p, f_drag))
         self.total.add(stats)
         self._interval.add(stats)
@@ -306,6 +323,8 @@ class GroupDynamics:
         """(k_n, m_ref) of a contact law's parameters: m_ref > 0 for per-pair group scaling, 0 for a fixed k_n."""
         return float(params.kn), float(getattr(params, "m_ref", 0.0))
 
-    def crush_sizes(self, n: int, d: float, d_cl: float) -> tuple[int, int, int]:
-        """(originals per full child, number of full children, remainder) of a crush (eqs 40-42)."""
-        return crush_sizes(int(n), float(d), float(d_cl), self.d_orig)
+    def crush_sizes(self, n: float, d: float, d_cl: float) -> tuple[float, int, float]:
+        """(originals per full child, number of full children, originals in the remainder) of a crush (eqs 40-42)."""
+        u = self.min_group
+        k, n_full, rem = crush_sizes(int(round(n / u)), float(d), float(d_cl), self.d_orig * u ** (1.0 / 3.0))
+        return (k * u, n_full, rem * u) if u != 1.0 else (k, n_full, rem)

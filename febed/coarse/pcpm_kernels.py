@@ -1,8 +1,9 @@
 r"""Numba kernels of the dynamic coarse grain (PCPM, seed 000 sec 2.3) over plain particle arrays.
 
-Groups are integer counts n of original particles of diameter d_O and one material density: a group's
-diameter is d_O n^{1/3} (eqs 43, 46). `equivalent_diameter` evaluates d_cl (eqs 32-39); `group_events` decides
-and builds the crush (eqs 40-43) and merge (eqs 44-46) events of one evaluation. See `febed.coarse.pcpm` for the
+Groups are counts n of original particles of diameter d_O and one material density: a group's diameter is
+d_O n^{1/3} (eqs 43, 46); n is a whole number, or a multiple of a unit 2^-j when the originals are divisible.
+`equivalent_diameter` evaluates d_cl (eqs 32-39); `group_events` decides and builds the crush (eqs 40-43) and
+merge (eqs 44-46) events of one evaluation. See `febed.coarse.pcpm` for the
 choices where the paper is silent.
 """
 
@@ -47,17 +48,19 @@ def equivalent_diameter(eps, u, v, f_drag, mass, e_cc, d_orig, rho_p, rho_g, g, 
 
 
 @njit(cache=True)
-def crush_sizes(n, d, d_cl, d_orig):
-    """Children of a group of n originals and diameter d crushed at d_cl (eqs 40-42), as integer counts.
+def crush_sizes(n, d, d_cl, d_unit):
+    """Children of a group of n units and diameter d crushed at d_cl (eqs 40-42), as integer counts of units.
 
-    n_new - 1 = floor(d²/d_cl²) children (eq 41) of k = max(1, floor((d_cl/d_O)³)) originals (diameter <= d_cl),
-    capped so that the remainder child (eq 42) keeps at least one original. Returns (k, n_full, remainder);
-    n_full = 0 means the group cannot crush (n = 1, or d <= d_cl).
+    A unit is the smallest group (diameter d_unit): one original, or a fraction 2^-j of one when the originals
+    are divisible (`GroupDynamics(min_group=...)`). n_new - 1 = floor(d²/d_cl²) children (eq 41) of
+    k = max(1, floor((d_cl/d_unit)³)) units (diameter <= d_cl), capped so that the remainder child (eq 42) keeps
+    at least one unit. Returns (k, n_full, remainder); n_full = 0 means the group cannot crush (n = 1 unit, or
+    d <= d_cl).
     """
     if n < 2 or not d > d_cl or not d_cl > 0.0:
         return 0, 0, n
     x = d / d_cl
-    k = max(1, int(math.floor((d_cl / d_orig) ** 3 * (1.0 + 1e-12))))
+    k = max(1, int(math.floor((d_cl / d_unit) ** 3 * (1.0 + 1e-12))))
     n_full = min(math.floor(min(x * x, 1e18)), (n - 1) // k)  # eq 41 (x² capped: d_cl -> 0 gives inf)
     if n_full < 1:
         return 0, 0, n
@@ -395,15 +398,18 @@ def _merge_energy(i, j, x, y, z, cx, cy, cz, rn, pos, vel, omega, diam, mass, lo
 
 @njit(cache=True)
 def group_events(
-    pos, vel, omega, diam, mass, n_orig, n, n_all, turn, d_orig, dim2, d_cl, do_crush, do_merge, n_max, merge_tol,
-    tol, tries, seed, plane_p, plane_n, facets, nv, kn_pp, mref_pp, kn_pw, mref_pw, gvec, conserve, removed, new_pos,
-    new_vel, new_omega, new_n, counts, de,
+    pos, vel, omega, diam, mass, n_orig, n, n_all, turn, d_orig, unit, dim2, d_cl, do_crush, do_merge, n_max,
+    merge_tol, tol, tries, seed, plane_p, plane_n, facets, nv, kn_pp, mref_pp, kn_pw, mref_pw, gvec, conserve,
+    removed, new_pos, new_vel, new_omega, new_n, counts, de,
 ):  # fmt: skip
     """Crush and merge events of one evaluation over rows [0, n); returns the number of new groups written.
 
     Rows [n, n_all) are another rank's groups (MPI ghosts): obstacles for the overlap checks, never part of an
     event. Unless `turn`, a group within 2 largest radii of a ghost takes part in no event either (it waits
     for this rank's turn, so that two ranks never place groups in the same region in one evaluation).
+
+    n_orig (n_all,) originals per group, whole multiples of `unit` (1, or 2^-j with divisible originals): a crush
+    never makes a group below one unit (diameter d_orig unit^(1/3)).
 
     Crushing (eqs 40-43): groups with d > d_cl split into `crush_sizes` children with the parent's velocity and
     spin, centres drawn uniformly in the parent's sphere (disk in 2D); for each child the best of `tries` draws
@@ -441,12 +447,13 @@ def group_events(
     for i in range(n):
         removed[i] = False
     cap = new_n.size
+    d_unit = d_orig * unit ** (1.0 / 3.0)
     # ------------------------------------------------------------------ crushing (eqs 40-43)
     kids = np.empty((max(cap, 1), 4))
     for i in range(n):
         if not do_crush:
             break
-        k, n_full, rem = crush_sizes(n_orig[i], diam[i], d_cl[i], d_orig)
+        k, n_full, rem = crush_sizes(int(round(n_orig[i] / unit)), diam[i], d_cl[i], d_unit)
         if n_full == 0:
             continue
         if frozen[i]:  # at the partition: waits for this rank's turn
@@ -457,8 +464,8 @@ def group_events(
         if m + nk > cap:
             counts[3] += 1
             continue
-        r_full = 0.5 * d_orig * k ** (1.0 / 3.0)
-        r_rem = 0.5 * d_orig * rem ** (1.0 / 3.0)
+        r_full = 0.5 * d_unit * k ** (1.0 / 3.0)
+        r_rem = 0.5 * d_unit * rem ** (1.0 / 3.0)
         ext = R + max(r_full, r_rem)
         if _conflicts(pos[i, 0], pos[i, 1], pos[i, 2], ext, ev, n_ev):
             counts[5] += 1
@@ -507,7 +514,7 @@ def group_events(
                 new_omega[m, a] = omega[i, a]
             first_rem = r_rem >= r_full
             is_rem = (c == 0) if first_rem else (c == nk - 1)
-            new_n[m] = rem if is_rem else k
+            new_n[m] = (rem if is_rem else k) * unit  # exact: unit is a power of 2
             m += 1
         removed[i] = True
         ev[n_ev, 0] = pos[i, 0]

@@ -8,10 +8,12 @@
 * `scg`: round(N / l³) particles of diameter l d and density ρ d² / (l d)² (seed 003 eq 7), n_orig = 1;
   contacts as given.
 * `pcpm`: groups of l³ originals to start with (as `tm`); contacts scaled per pair by the two groups' sizes
-  (`linear_groups`); groups crush and merge every `event_interval` of simulated time (`GroupDynamics`).
+  (`linear_groups`); groups crush and merge every `event_interval` of simulated time (`GroupDynamics`), down to
+  `min_group` originals (below 1: divisible originals).
 
-The drag of a particle of n_orig originals is n_orig times that of one original of d / n_orig^(1/3) at its
-velocity (the coupling does this for every model). A packed bed file holds the particles as inserted, so a
+The drag of a particle of n_orig >= 1 originals is n_orig times that of one original of d / n_orig^(1/3) at its
+velocity, a piece of an original (n_orig < 1) has its own sphere's drag (the coupling does this for every
+model, `febed.coupling.drag.closure_sizes`). A packed bed file holds the particles as inserted, so a
 coarse-grained case needs its own `bed_file`.
 """
 
@@ -20,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from febed.coarse.scg import scg_count, scg_particles
+from febed.schema import MIN_GROUPS
 
 
 @dataclass
@@ -46,6 +49,11 @@ def check_case(case) -> list[str]:
         problems.append(
             f"[coarse_grain] model = 'pcpm' scales each contact by its groups' sizes with the 'linear' law: set "
             f"[contact] model = 'linear' (got {case.contact.model!r})"
+        )
+    if cg.model == "pcpm" and cg.min_group not in MIN_GROUPS:
+        problems.append(
+            f"[coarse_grain] min_group = {cg.min_group}: the smallest group is 1 original or a power-of-two "
+            f"fraction of one: one of {', '.join(f'{x:g}' for x in MIN_GROUPS)}"
         )
     if cg.model == "pcpm" and cg.eps_max <= cg.eps_mf:
         problems.append(f"[coarse_grain] eps_max = {cg.eps_max} must exceed eps_mf = {cg.eps_mf}")
@@ -108,7 +116,8 @@ def group_dynamics(case):
     return GroupDynamics(
         case.particles.diameter, case.particles.density, case.gas.density, case.gas.viscosity, cg.eps_mf,
         gravity=case.run.gravity, u_mf=cg.u_mf if cg.u_mf > 0 else None, eps_max=cg.eps_max,
-        max_group=cg.max_group, overlap_tolerance=cg.overlap_tolerance, merge_tolerance=cg.merge_tolerance,
+        max_group=cg.max_group, min_group=cg.min_group, overlap_tolerance=cg.overlap_tolerance,
+        merge_tolerance=cg.merge_tolerance,
         contact_power=cg.contact_power, tries=cg.placement_tries, interval=cg.interval,
         event_interval=cg.event_interval if cg.event_interval > 0 else None, seed=case.run.seed,
     )  # fmt: skip

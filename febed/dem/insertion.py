@@ -199,7 +199,7 @@ def load_bed(path) -> tuple[Particles, dict]:
     """Particles and metadata saved by `save_bed`; BedError naming the file if it is not a usable bed.
 
     Checks that the file is a readable .npz archive, that it holds pos, diameter and mass of at least one
-    particle with matching lengths, that every value is finite, diameters and masses > 0, n_orig >= 1 and
+    particle with matching lengths, that every value is finite, diameters and masses > 0, n_orig > 0 and
     gids unique. A missing inertia is that of a solid sphere, 0.1 m d^2.
     """
     path = Path(path)
@@ -260,8 +260,8 @@ def _check_bed_arrays(path: Path, data: dict[str, np.ndarray]) -> None:
         if np.any(data[k] <= 0):
             raise BedError(f"bed file {path}: {k} must be > 0; {int(np.count_nonzero(data[k] <= 0))} particle(s) have "
                            f"{data[k].min():g}")  # fmt: skip
-    if "n_orig" in data and np.any(data["n_orig"] < 1):
-        raise BedError(f"bed file {path}: n_orig must be >= 1 (the original particles each one stands for)")
+    if "n_orig" in data and np.any(data["n_orig"] <= 0):
+        raise BedError(f"bed file {path}: n_orig must be > 0 (originals, or a piece of one, per particle)")
     if "gid" in data:
         gid = data["gid"]
         if np.any(gid < 0) or np.any(gid >= GID_LIMIT) or np.unique(gid).size != n:

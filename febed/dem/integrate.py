@@ -314,7 +314,7 @@ def get_integrator(name: str) -> Integrator:
 def _tc(p, m_eff: float) -> float:
     kn, ce = p.kn, p.ce
     if hasattr(p, "m_ref"):  # particle-groups (`linear_groups`): the pair's TM scaling, l^3 = m_eff / m_ref
-        ratio = max(1.0, (m_eff / p.m_ref) ** (1.0 / 3.0))
+        ratio = (m_eff / p.m_ref) ** (1.0 / 3.0)  # < 1 for pieces of a divisible original, as in the law
         kn, ce = kn * ratio * ratio, min(ce * math.sqrt(ratio), 0.999)
     w0 = math.sqrt(kn / m_eff)  # seed 001 eq 17
     return math.pi / (w0 * math.sqrt(1.0 - ce * ce))  # seed 001 eqs 18-19

@@ -25,7 +25,7 @@ SCALAR_FIELDS = {
     "mass": np.float64,
     "inertia": np.float64,
     "gid": np.int64,
-    "n_orig": np.int64,
+    "n_orig": np.float64,  # originals each particle stands for: whole, or a fraction when divisible (PCPM)
     "cell": np.int64,
     "material": np.int32,
 }
@@ -125,7 +125,7 @@ class Particles:
         density: float | np.ndarray,
         vel: np.ndarray | None = None,
         omega: np.ndarray | None = None,
-        n_orig: int | np.ndarray = 1,
+        n_orig: float | np.ndarray = 1,
         material: int | np.ndarray = 0,
     ) -> np.ndarray:
         """Append owned spheres (diameter m, density kg/m^3) and return their new gids; drops ghosts."""

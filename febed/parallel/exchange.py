@@ -36,8 +36,8 @@ from febed.dem.particles import GID_LIMIT
 from febed.parallel.halo import HaloTable
 from febed.parallel.partition import cell_owners
 
-_GHOST_FLOATS = ("pos", "vel", "omega", "diameter", "mass", "inertia")
-_GHOST_INTS = ("gid", "n_orig", "material")
+_GHOST_FLOATS = ("pos", "vel", "omega", "diameter", "mass", "inertia", "n_orig")
+_GHOST_INTS = ("gid", "material")
 _MASK31 = (1 << 31) - 1
 
 
@@ -288,7 +288,7 @@ class ParticleExchange:
         recv = np.zeros(self.size, dtype=np.int64)
         self.comm.Alltoall(counts, recv)
         self._recv_start = np.concatenate([[0], np.cumsum(recv)])
-        nf = 12
+        nf = 13
         fbuf = np.empty((rows.size, nf))
         ibuf = np.empty((rows.size, len(_GHOST_INTS)), dtype=np.int64)
         c = 0
@@ -315,7 +315,7 @@ class ParticleExchange:
                 reqs.append(self.comm.Isend(ibuf[a:b], dest=r, tag=12))
         MPI.Request.Waitall(reqs)
         fields = {"pos": rf[:, 0:3], "vel": rf[:, 3:6], "omega": rf[:, 6:9], "diameter": rf[:, 9], "mass": rf[:, 10],
-                  "inertia": rf[:, 11]}  # fmt: skip
+                  "inertia": rf[:, 11], "n_orig": rf[:, 12]}  # fmt: skip
         for k, name in enumerate(_GHOST_INTS):
             fields[name] = ri[:, k]
         fields["cell"] = np.full(m, -1, dtype=np.int64)

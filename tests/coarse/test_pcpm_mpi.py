@@ -28,7 +28,8 @@ def gathered(P):
     return [np.concatenate([p[k] for p in parts]) for k in range(5)]
 
 
-def test_events_across_the_partition_conserve_and_do_not_overlap():
+@pytest.mark.parametrize("min_group", [1.0, 0.125])
+def test_events_across_the_partition_conserve_and_do_not_overlap(min_group):
     import dolfinx.mesh as dm
 
     lo, hi = np.zeros(3), np.array([L, L, 2 * L])  # the partition plane is z = L on 2 ranks
@@ -41,7 +42,9 @@ def test_events_across_the_partition_conserve_and_do_not_overlap():
     dem.add_particles(pos, 2 * DO, RHO, vel=vel, n_orig=8)
     dem.attach_exchange(ParticleExchange.from_mesh(mesh), distribute=True)
     gd = GroupDynamics(DO, RHO, 1.2, 1.8e-5, 0.45, overlap_tolerance=TOL, merge_tolerance=1.0, max_group=16,
-                       measure_energy=False, conserve_energy=False, seed=3 + COMM.rank)  # fmt: skip
+                       min_group=min_group, measure_energy=False, conserve_energy=False,
+                       seed=3 + COMM.rank)  # fmt: skip
+    # divisible originals (min_group 1/8): crushes down to pieces of an original, counts in eighths
     # (the energy rule is tested serially in test_pcpm_energy.py; here events near the partition are wanted)
     P = dem.particles
     gid0, _, _, n0, p0 = gathered(P)
@@ -53,8 +56,9 @@ def test_events_across_the_partition_conserve_and_do_not_overlap():
         n = P.n_owned
         at_plane = np.abs(P.pos[:n, 2] - L) < 3 * DO
         crush = k % 4 < 2  # two crush evaluations, then two merge ones: each rank has a turn of each
-        want = at_plane & (P.n_orig[:n] > 1) if crush else np.zeros(n, bool)
-        s = gd.apply(dem, np.where(want, 1.3 * DO, NO_CRUSH if crush else 10 * DO))
+        want = at_plane & (P.n_orig[:n] > min_group) if crush else np.zeros(n, bool)
+        d_cl = 1.3 * DO if min_group == 1.0 else 0.6 * P.diameter[:n]
+        s = gd.apply(dem, np.where(want, d_cl, NO_CRUSH if crush else 10 * DO))
         crushed += COMM.allreduce(s.crushed)
         merged += COMM.allreduce(s.merged)
         n = P.n_owned
@@ -73,4 +77,6 @@ def test_events_across_the_partition_conserve_and_do_not_overlap():
             worst = ((r[rows][:, None] + r[None] - dist) / (2 * np.minimum(r[rows][:, None], r[None]))).max()
             assert worst <= TOL + 1e-12, f"evaluation {k}: a new group overlaps another by {worst:.3f} of a diameter"
     assert crushed > 10 and merged > 5 and near > 10
+    if min_group < 1.0:  # pieces of originals were made, on both sides of the partition
+        assert gathered(P)[3].min() < 1.0
     assert gid0.size == 150
