@@ -28,6 +28,7 @@ and what the gas gives are the same sum, since interpolation and projection shar
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -52,7 +53,8 @@ from febed.coupling.exchange import Coupler
 from febed.coupling.locate import OUTSIDE_DOMAIN, OUTSIDE_LOCAL
 from febed.coupling.mesh_arrays import extract_mesh_arrays
 from febed.gas.pressure import PressureSolveError
-from febed.gas.vans import VANSSolver
+from febed.gas.vans import StepInfo, VANSSolver
+from febed.io.state import dem_arrays, gas_arrays, load_dem, restore_gas
 from febed.parallel.exchange import ParticleExchange
 from febed.parallel.partition import cell_owners
 
@@ -319,6 +321,46 @@ class CoupledSolver:
             c.reset_cells(c.cell[keep])
             c.locate(P.pos[:n])  # compacts the coupler's arrays; every cell is known, so no search
         P.cell[:n] = c.cell
+
+    # ------------------------------------------------------------------------------------ state
+    def get_state(self) -> tuple[dict[str, np.ndarray], dict]:
+        """This rank's state (copies): checkpoint arrays and a JSON-able record of the loop (collective).
+
+        The arrays are `febed.io.state`'s `gas/...` and `dem/...`; the record holds the time, gas steps, particles
+        removed at the outlet (the total over the ranks), timers, last gas step, random generator and groups.
+        """
+        arrays = gas_arrays(self.gas)
+        arrays.update(dem_arrays(self.dem))
+        record = {
+            "time": self.t,
+            "step": self.steps,
+            "left_outlet": self.md.comm.allreduce(self.left_outlet),
+            "n_sub": self.n_sub,
+            "timers": self.timers.as_dict(),
+            "last_gas": dataclasses.asdict(self.last_gas) if self.last_gas is not None else None,
+            "rng": self.rng.bit_generator.state,
+            "groups": self.groups.state_dict() if self.groups is not None else None,
+        }
+        return arrays, record
+
+    def set_state(self, arrays: dict[str, np.ndarray], record: dict, ranks: int) -> None:
+        """Take back a state of `get_state` written by `ranks` processes (every rank holds all of it; collective)."""
+        restore_gas(self.gas, arrays, float(record["time"]), self.md.comm)
+        self.load_particles(arrays, ranks)
+        self.t, self.steps = float(record["time"]), int(record["step"])
+        self.left_outlet = int(record["left_outlet"]) if self.md.comm.rank == 0 else 0  # the total, counted once
+        self.n_sub = int(record["n_sub"])
+        for k, v in record["timers"].items():
+            setattr(self.timers, k.removeprefix("wall_"), float(v))
+        self.last_gas = StepInfo(**record["last_gas"]) if record["last_gas"] is not None else None
+        self.rng.bit_generator.state = record["rng"]
+        if self.groups is not None and record.get("groups"):
+            self.groups.load_state_dict(record["groups"])
+
+    def load_particles(self, arrays: dict[str, np.ndarray], ranks: int) -> None:
+        """Put a checkpoint's particles into the DEM (`febed.io.state.load_dem`), then locate them afresh."""
+        load_dem(self.dem, arrays, {"ranks": ranks}, self.md.comm.size)
+        self.reset_coupling()  # locate the particles and recompute α_p as at the end of the last step
 
     def reset_coupling(self) -> None:
         """Locate the particles afresh and recompute α_p (after the particles were replaced, e.g. a restart)."""

@@ -121,7 +121,7 @@ def test_a_function_level_import_that_avoids_nothing_is_a_note(tree):
     note = f"{where}:{line + 1}: note: febed.case imports febed.schema inside a function, which loads nothing"
     assert any(s.startswith(note) for s in res.stdout.splitlines()), res.stdout
     listed = check(tree, "-v").stdout  # -v: also those that avoid a heavy dependency, with what they avoid
-    assert "febed/restart.py:" in listed and "imports febed.gas.vans inside a function: avoids " in listed
+    assert "febed/coarse/setup.py:" in listed and "imports febed.coarse.tm inside a function: avoids numba" in listed
 
 
 def test_a_folder_without_febed_is_an_error(tmp_path):

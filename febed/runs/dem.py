@@ -29,6 +29,7 @@ from febed.dem.solver import DEM, DEMFailure, StopRequested
 from febed.io.checkpoint import load_checkpoint
 from febed.io.particles import ParticleWriter
 from febed.io.progress import Progress, RateMeter
+from febed.io.state import dem_arrays, load_dem
 from febed.meshing import load_case_mesh
 from febed.parallel.exchange import balance_line
 from febed.runs.lifecycle import (
@@ -45,7 +46,7 @@ class DEMRun(RunMode):
     """A pure-DEM run with its output: `advance_to(t)` steps the DEM, writing particles and checkpoints.
 
     Checkpoints (`checkpoints/checkpoint_<step>.npz`, the same files as a coupled run's: the DEM state by
-    global id, `febed.restart.dem_arrays`) are written every `[output] checkpoint_interval` simulated or
+    global id, `febed.io.state.dem_arrays`) are written every `[output] checkpoint_interval` simulated or
     `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM/SIGUSR1 and at the end. The state at each particle
     output is kept in memory: a blow-up (`DEMFailure`) writes it as the last good checkpoint.
     """
@@ -68,7 +69,7 @@ class DEMRun(RunMode):
             self.dem = dem_from_case(case, walls, md.gdim, Particles())
             if exchange is not None:
                 self.dem.attach_exchange(exchange)
-            rs.load_dem(self.dem, arrays, meta, comm.size)
+            load_dem(self.dem, arrays, meta, comm.size)
             sched = meta["run"]
             self.next_out = float(sched["next_out"])
             self.next_ckpt = self.dem.time + o.checkpoint_interval
@@ -101,7 +102,7 @@ class DEMRun(RunMode):
                 "left": self.comm.allreduce(self.left),
             },
         }
-        return rs.dem_arrays(self.dem), meta
+        return dem_arrays(self.dem), meta
 
     STEP = "DEM step"
 

@@ -8,7 +8,7 @@ coordinates x (n, 3) and the time t returning (n,) values in (0, 1]. Fields u, p
 Like coupled and pure-DEM runs, a gas-only run (`GasRun`) shows a progress line (simulated time, step, Δt,
 CFL, Poisson iterations, wall time per simulated second, ETA) every `output.progress_interval` wall seconds,
 live on a terminal and always in `febed.log`; keeps `status.json` up to date; writes checkpoints (the gas
-state at the owned nodes with their coordinates, `febed.restart.gas_arrays`) every
+state at the owned nodes with their coordinates, `febed.io.state.gas_arrays`) every
 `output.checkpoint_interval` simulated or `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM/SIGUSR1
 and at the end, and continues from one with `febed run CASE --restart` on any number of ranks. After every
 step the velocity and pressure are checked: a non-finite value, or a pressure solve that does not converge,
@@ -33,6 +33,7 @@ from febed.gas.vans import VANSSolver
 from febed.io.checkpoint import load_checkpoint
 from febed.io.fields import FieldWriter
 from febed.io.progress import Progress, RateMeter
+from febed.io.state import gas_arrays, restore_gas
 from febed.meshing import load_case_mesh
 from febed.runs.lifecycle import (
     RunMode,
@@ -68,7 +69,7 @@ class GasRun(RunMode):
         self.restarted_from = None
         if restart is not None:
             path, arrays, meta = restart
-            rs.restore_gas(s, arrays, float(meta["time"]), comm)
+            restore_gas(s, arrays, float(meta["time"]), comm)
             self.steps = int(meta["step"])
             self.segment = int(meta["run"]["segment"]) + 1
             self.next_out = float(meta["run"]["next_out"])
@@ -100,7 +101,7 @@ class GasRun(RunMode):
             "mode": "gas",
             "run": {"next_out": self.next_out, "segment": self.segment},
         }
-        return rs.gas_arrays(s), meta
+        return gas_arrays(s), meta
 
     STEP = "gas step"
 

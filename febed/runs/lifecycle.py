@@ -47,10 +47,10 @@ from mpi4py import MPI
 
 import numpy as np
 
-from febed import restart as rs
 from febed.dem.solver import DEMFailure
 from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta, write_checkpoint
 from febed.io.rundir import LOG_FILE, STATUS_FILE, write_status
+from febed.io.state import gather as gather_state
 from febed.solver import RunFailure
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # finish the step, checkpoint, stop
@@ -185,7 +185,7 @@ class RunMode:
         """Write a checkpoint of the current state, or of `state` = (arrays, meta) from `capture` (collective)."""
         arrays, meta = state if state is not None else self.capture()
         meta = {**meta, "case": self.case.to_toml()}
-        gathered = rs.gather(arrays, meta, self.comm)
+        gathered = gather_state(arrays, meta, self.comm)
         path = checkpoint_or_fail(
             write_checkpoint, self.outdir / FOLDER, gathered, meta, self.case.output.keep_checkpoints, self.comm
         )
