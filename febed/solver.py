@@ -148,7 +148,7 @@ class CoupledSolver:
         if md.comm.size > 1:  # particles live with the mesh partition (seed 001 sec 2.5)
             dem.attach_exchange(ParticleExchange(self.ma, cell_owners(md.mesh)), distribute=True)
         self.fixed = case.particles.fixed
-        self._located_now = False  # the coupler's cells and weights match the particles' current positions
+        self._located = -1  # the DEM's `layout` the coupler's cells and weights were found for (`located`)
         self._fluid_tau = None  # min m_p/K_p if the FLUID record is already that of the next step (PCPM)
         self.outlet_facets = self._outlet_facet_mask()
         self.t = 0.0
@@ -186,7 +186,7 @@ class CoupledSolver:
         self.n_sub = max(1, math.ceil(dt / self.dem.dt * (1 - 1e-12)))
         if self.fixed:  # the particles do not move, but the gas they see does: their K_p, F_P for this step
             t0 = time.perf_counter()
-            self._fluid(relocate=not self._located_now)
+            self._fluid(relocate=not self.located)
             self.timers.coupling += time.perf_counter() - t0
         else:
             self.advance_particles(dt, self.n_sub)  # times itself (DEM / coupling)
@@ -216,8 +216,8 @@ class CoupledSolver:
         """
         t0 = time.perf_counter()
         tau = self._fluid_tau  # the record `group_events` made from this gas, if the particles are unchanged since
-        if tau is None or not self._located_now:
-            tau = self._fluid(relocate=not self._located_now)  # min_p m_p/K_p (inf without particles)
+        if tau is None or not self.located:
+            tau = self._fluid(relocate=not self.located)  # min_p m_p/K_p (inf without particles)
         self._fluid_tau = None
         P = self.dem.particles
         if self.md.comm.size > 1:  # every rank steps the same chunks (the DEM exchanges ghosts per step)
@@ -236,7 +236,6 @@ class CoupledSolver:
             t1 = time.perf_counter()
             self.timers.coupling += t1 - t0
             self.dem.advance(steps, h, f)
-            self._located_now = False
             t0 = time.perf_counter()
             self.timers.dem += t0 - t1
             done += steps
@@ -258,18 +257,21 @@ class CoupledSolver:
             gd.update(dem, None, None, None)
             return
         t0 = time.perf_counter()
-        if gd.prepare(dem) or not self._located_now:  # a rebuild may have reordered the rows
+        gd.prepare(dem)  # a rebuild may reorder the rows
+        if not self.located:
             self.locate_particles()
-            self._located_now = True
         f_d = np.empty((dem.particles.n_owned, 3))
         tau = self._fluid(relocate=False, drag=f_d)
         u_p, eps_p, _ = self.coupler.gas_at_particles(self.gas.u, self.gas.eps, self.gas.grad_p)
         gd.update(dem, eps_p, u_p, f_d)
         if dem.exchange is None and not dem._dirty:  # no event: the same rows, so the same record next step
             self._fluid_tau = tau
-        else:
-            self._located_now = False  # groups were added and removed (with MPI: the ghost rows were dropped)
         self.timers.coupling += time.perf_counter() - t0
+
+    @property
+    def located(self) -> bool:
+        """True if the coupler's cells and weights are those of the particles' current rows and positions."""
+        return self._located == self.dem.layout
 
     def locate_particles(self) -> None:
         """Locate the owned particles (walk from their previous cell); remove those that left by an outlet."""
@@ -321,6 +323,7 @@ class CoupledSolver:
             c.reset_cells(c.cell[keep])
             c.locate(P.pos[:n])  # compacts the coupler's arrays; every cell is known, so no search
         P.cell[:n] = c.cell
+        self._located = self.dem.layout
 
     # ------------------------------------------------------------------------------------ state
     def get_state(self) -> tuple[dict[str, np.ndarray], dict]:
@@ -365,7 +368,7 @@ class CoupledSolver:
     def reset_coupling(self) -> None:
         """Locate the particles afresh and recompute α_p (after the particles were replaced, e.g. a restart)."""
         self._failure = None
-        self._located_now = False
+        self._located = -1
         self._fluid_tau = None
         self.project()
 
@@ -458,7 +461,6 @@ class CoupledSolver:
         """
         if relocate:
             self.locate_particles()
-            self._located_now = True
         gas = self.gas
         P = self.dem.particles
         n = P.n_owned
@@ -486,7 +488,6 @@ class CoupledSolver:
         saves a second interpolation pass per gas step.
         """
         self.locate_particles()
-        self._located_now = True
         K, f_p = self._last_exchange()
         P = self.dem.particles
         d_orig, n_orig = self._originals()

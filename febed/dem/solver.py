@@ -144,6 +144,7 @@ class DEM:
         self.max_overlap = 0.0  # largest overlap / smaller diameter of the pair seen since the last reset
         self._dirty = True
         self._forces_valid = False
+        self.layout = 0  # changes whenever the rows may have moved, been reordered, added or removed
         self._dt = None
         self.exchange = None  # febed.parallel.ParticleExchange when running on several ranks
         self._saved = None  # contact history keyed by gid pairs, carried over a change of rows
@@ -203,6 +204,7 @@ class DEM:
         """Declare that positions/velocities were changed from outside: rebuild and recompute forces."""
         self._dirty = True
         self._forces_valid = False
+        self.layout += 1
 
     # ------------------------------------------------------------------ time step
     def critical_time(self) -> float:
@@ -265,6 +267,7 @@ class DEM:
         Every `sort_every` builds (or when rows changed anyway) the particles are first sorted by linked cell
         for memory locality; otherwise the history is merged row by row (no key search).
         """
+        self.layout += 1  # rows may be reordered (and with MPI migrated)
         if self.exchange is not None:
             self._rebuild_parallel()
             return
@@ -436,6 +439,7 @@ class DEM:
             f_ext = np.asarray(f_ext, dtype=float)
             if f_ext.shape != (P.n_owned, 3):
                 raise ValueError(f"f_ext must have shape ({P.n_owned}, 3), got {f_ext.shape}")
+        self.layout += n_steps > 0
         if self.exchange is not None:
             self._advance_parallel(n_steps, dt, f_ext)
             return
@@ -590,6 +594,7 @@ class DEM:
 
     def set_state(self, state: dict) -> None:
         """Restore a state of `get_state` (arrays as loaded by np.load are fine) into this DEM."""
+        self.layout += 1
         missing = [k for k in ("p_pos", "p_gid", "time", "steps", "dt") if k not in state]
         if missing:
             raise ValueError(f"state misses {missing}: pass a dict from DEM.get_state()")
