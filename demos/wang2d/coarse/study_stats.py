@@ -12,12 +12,15 @@
 # - the PCPM group count and crush/merge events per second (Figs 8-9), and the energy the events injected
 #   over the bed's mean kinetic energy;
 #
-# all averaged over `--from` s to the end of each run. It then states, for each l, whether PCPM and TM differ
-# by more than their spread: |mean_PCPM - mean_TM| against 2 sqrt(s_PCPM² + s_TM²)/sqrt(beds).
+# all averaged over `--from` s to the end of each run (a run that failed, e.g. on `run.max_overlap`, up to
+# 30 ms before its failure, if that leaves at least 1 s; the table says how many failed and when). It then
+# states, for each l, whether PCPM and TM differ by more than their spread: |mean_PCPM - mean_TM| against
+# 2 sqrt(s_PCPM² + s_TM²)/sqrt(beds).
 #
 # Usage: `.venv/bin/python demos/wang2d/coarse/study_stats.py [--beds 3] [--end-time 5] [--jobs 1]
-# [--cases tm1 tm2 ...] [--no-run] [--out DIR]`. Runs go to `out/stats/<case>-b<k>/`, beds to `out/stats/beds/`, the table
-# to `out/stats/stats.md` and `stats.csv`. Finished runs are reused.
+# [--cases tm1 tm2 ...] [--no-run] [--out DIR]`. Runs go to `out/stats/<case>-b<k>/`, beds to
+# `out/stats/beds/`, the table to `out/stats/stats.md` and `stats.csv`. Runs made to the same end time
+# (finished or failed) are reused.
 
 import argparse
 import csv
@@ -68,13 +71,18 @@ def run_dir(case: str, k: int) -> Path:
     return OUT / f"{case}-b{k}"
 
 
-def finished(case: str, k: int) -> bool:
-    """True if the run reached this end time."""
+def status(case: str, k: int) -> dict:
+    """The run's status.json ({} if there is none)."""
     try:
-        info = json.loads((run_dir(case, k) / "status.json").read_text())
+        return json.loads((run_dir(case, k) / "status.json").read_text())
     except (OSError, ValueError):
-        return False
-    return info.get("state") == "finished" and math.isclose(info.get("end_time", -1), args.end_time)
+        return {}
+
+
+def attempted(case: str, k: int) -> bool:
+    """True if the run was made to this end time: it finished, or it failed (a rerun would fail the same way)."""
+    info = status(case, k)
+    return info.get("state") in ("finished", "failed") and math.isclose(info.get("end_time", -1), args.end_time)
 
 
 def bed_file(case: str, k: int) -> Path:
@@ -84,7 +92,7 @@ def bed_file(case: str, k: int) -> Path:
 
 def run(case: str, k: int) -> None:
     """Run `case` from bed k into its folder (its bed packed first if missing); skipped if finished."""
-    if finished(case, k):
+    if attempted(case, k):
         return
     d = run_dir(case, k)
     cmd = [str(FEBED), "run", str(HERE / CASES[case][0]), "--overwrite", "--set", f"output.directory={d}",
@@ -137,12 +145,19 @@ M_O = RHO * math.pi / 6 * D**3
 
 
 def run_stats(case: str, k: int) -> dict | None:
-    """Statistics of run (case, bed k) over [--from, end]; None if it did not reach the end time."""
+    """Statistics of run (case, bed k) over [--from, end]; a run that failed (e.g. an overlap above
+    `run.max_overlap`) over [--from, its failure - 30 ms] if that is at least 1 s long, else None."""
     d = run_dir(case, k)
-    if not finished(case, k):
+    if not attempted(case, k):
         return None
     pr = read_probes(d / "probes.csv")
     t = pr["time"]
+    failed = status(case, k)["state"] == "failed"
+    if failed:
+        if t[-1] - 0.03 < args.t_from + 1.0:
+            return None
+        pr = {key: v[t <= t[-1] - 0.03] for key, v in pr.items()}
+        t = pr["time"]
     w = t >= args.t_from
     ratio = CASES[case][1] if CASES[case][1] < 100 else 1
     n_orig = pr["originals"][0] if "originals" in pr else pr["particles"][0] * ratio**3
@@ -157,6 +172,8 @@ def run_stats(case: str, k: int) -> dict | None:
         "dp45_freq_Hz": dominant_frequency(t[w], dp45[w]),
         "lost_percent": 100.0 * pr["left_outlet"][-1] / pr["particles"][0],
         "wall_per_sim_s": sum(pr[f"wall_{p}"][-1] for p in ("dem", "coupling", "gas", "output")) / t[-1],
+        "t_end_s": t[-1],
+        "failed": float(failed),
     }
     if "groups" in pr:
         i0 = int(np.argmax(w))
@@ -176,7 +193,8 @@ for c in args.cases:
     samples = [s for k in range(args.beds) if (s := run_stats(c, k)) is not None]
     if not samples:
         continue
-    table[c] = {"beds": len(samples)}
+    table[c] = {"beds": len(samples), "failed": int(sum(x["failed"] for x in samples)),
+                "t_min": min(x["t_end_s"] for x in samples)}  # fmt: skip
     for key in KEYS:
         v = np.array([s[key] for s in samples if key in s])
         if v.size:
@@ -203,10 +221,12 @@ COLS = (("bed height [mm]", "bed_height_mm", 1), ("Δp bed / W", "dp_bed_over_W"
         ("groups", "groups_mean", 0), ("crushes /s", "crushes_per_s", 0), ("merges /s", "merges_per_s", 0),
         ("event energy / KE", "event_energy_over_ke", 4), ("lost [%]", "lost_percent", 2),
         ("wall s / sim s", "wall_per_sim_s", 0))  # fmt: skip
-lines = [f"Mean ± standard deviation over the beds, each averaged over {args.t_from:g}-{args.end_time:g} s.", "",
+lines = [f"Mean ± standard deviation over the beds, each averaged over {args.t_from:g}-{args.end_time:g} s "
+         "(a run that failed: up to 30 ms before its failure; beds: how many, and how many failed, and when).", "",
          "| case | beds | " + " | ".join(c[0] for c in COLS) + " |", "|---|---|" + "---|" * len(COLS)]  # fmt: skip
 for c, r in table.items():
-    lines.append(f"| {CASES[c][2]} | {r['beds']} | " + " | ".join(fmt(r, k, n) for _, k, n in COLS) + " |")
+    beds = f"{r['beds']}" + (f" ({r['failed']} to ≥ {r['t_min']:.2f} s)" if r["failed"] else "")
+    lines.append(f"| {CASES[c][2]} | {beds} | " + " | ".join(fmt(r, k, n) for _, k, n in COLS) + " |")
 lines += ["", "PCPM against TM at the same l: difference of the means over twice its standard error "
           "(above 1: the difference stands out of the spread between beds).", "",
           "| l | " + " | ".join(c[0] for c in COLS[:5]) + " |", "|---|" + "---|" * 5]  # fmt: skip
