@@ -48,7 +48,7 @@ def test_an_edited_contact_law_reaches_the_cached_force_kernels(tmp_path):
     assert before == pytest.approx(-1000.0 * 0.1e-3 * 0.1 / 1e-6, rel=1e-12)  # -k_n delta v / m (W/kg)
     law = tree / "febed" / "dem" / "contact.py"
     text = law.read_text()
-    edited = text.replace("fn = -p.kn * delta -", "fn = -2.0 * p.kn * delta -")
+    edited = text.replace("fn = -p.stiffness * delta -", "fn = -2.0 * p.stiffness * delta -")
     assert edited != text, "the normal force line of the linear law moved: update this test"
     law.write_text(edited)
     after, folder3 = run_copy(tree, cache)

@@ -321,7 +321,7 @@ class GroupDynamics:
     @staticmethod
     def _springs(params) -> tuple[float, float]:
         """(k_n, m_ref) of a contact law's parameters: m_ref > 0 for per-pair group scaling, 0 for a fixed k_n."""
-        return float(params.kn), float(getattr(params, "m_ref", 0.0))
+        return float(params.stiffness), float(getattr(params, "m_ref", 0.0))
 
     def crush_sizes(self, n: float, d: float, d_cl: float) -> tuple[float, int, float]:
         """(originals per full child, number of full children, originals in the remainder) of a crush (eqs 40-42)."""

@@ -84,10 +84,10 @@ def tm_contact_params(p: tuple, ratio: float, damping: str = "force") -> tuple:
         return p
     l2 = ratio * ratio
     f = p._asdict()
-    f["kn"] = p.kn * l2
+    f["stiffness"] = p.stiffness * l2
     f["ce"] = tm_damping_ratio(p.ce, ratio, damping)
-    if "kt" in f:
-        f["kt"] = p.kt * l2
+    if "stiffness_t" in f:
+        f["stiffness_t"] = p.stiffness_t * l2
         f["cet"] = tm_damping_ratio(p.cet, ratio, damping)
     return type(p)(**f)
 
@@ -145,6 +145,6 @@ def use_group_contacts(dem, d_orig: float, rho: float) -> None:
     if not (d_orig > 0 and rho > 0):
         raise ValueError(f"d_orig, rho: must be > 0, got {d_orig}, {rho}")
     m_o = rho * math.pi / 6.0 * d_orig**3
-    dem.pp = GroupParams(dem.pp.kn, dem.pp.ce, dem.pp.mu, 0.5 * m_o)
-    dem.pw = GroupParams(dem.pw.kn, dem.pw.ce, dem.pw.mu, m_o)
+    dem.pp = GroupParams(dem.pp.stiffness, dem.pp.ce, dem.pp.friction, 0.5 * m_o)
+    dem.pw = GroupParams(dem.pw.stiffness, dem.pw.ce, dem.pw.friction, m_o)
     dem.touch()

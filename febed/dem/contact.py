@@ -33,14 +33,17 @@ from numba.extending import overload
 
 from febed.schema import CONTACT_LAWS
 
-LinearParams = namedtuple("LinearParams", "kn ce mu")
-LinearParams.__doc__ = "Spring-dashpot + Coulomb: kn (N/m), ce = gamma_n/omega_0 from e_n (seed 001 eq 18), mu."
-HistoryParams = namedtuple("HistoryParams", "kn ce mu kt cet")
+LinearParams = namedtuple("LinearParams", "stiffness ce friction")
+LinearParams.__doc__ = (
+    "Spring-dashpot + Coulomb: stiffness k_n (N/m, `contact.stiffness` or `stiffness_wall`), ce = gamma_n/omega_0 "
+    "from e_n (seed 001 eq 18), friction mu (`contact.friction_pp` or `friction_pw`)."
+)
+HistoryParams = namedtuple("HistoryParams", "stiffness ce friction stiffness_t cet")
 # fastmath without the NaN/Inf assumptions: allows reciprocals, FMA contraction and reassociation, which only
 # change round-off (the conservation and restitution tests pass with the same tolerances).
 FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
-HistoryParams.__doc__ = "linear + tangential spring kt (N/m) with damping ratio cet, Coulomb cap mu."
+HistoryParams.__doc__ = "linear + tangential spring stiffness_t (N/m) with damping ratio cet, Coulomb cap friction."
 
 
 def damping_ratio(e: float) -> float:
@@ -94,27 +97,27 @@ class ContactLaw:
     params_class: type
     history: bool
 
-    def params(self, kn: float, e: float, mu: float, kt: float = 0.0) -> tuple:
-        """Parameter namedtuple for one pair type: kn, kt (N/m), restitution e, friction mu."""
-        if kn <= 0 or mu < 0 or kt < 0:
-            raise ValueError(f"contact law {self.name!r}: need kn > 0, kt >= 0, mu >= 0")
+    def params(self, stiffness: float, e: float, friction: float, stiffness_t: float = 0.0) -> tuple:
+        """Parameter namedtuple for one pair type: stiffness, stiffness_t (N/m), restitution e, friction."""
+        if stiffness <= 0 or friction < 0 or stiffness_t < 0:
+            raise ValueError(f"contact law {self.name!r}: need stiffness > 0, stiffness_t >= 0, friction >= 0")
         ce = damping_ratio(e)
         if self.params_class is LinearParams:
-            return LinearParams(float(kn), ce, float(mu))
-        return HistoryParams(float(kn), ce, float(mu), float(kt), ce)
+            return LinearParams(float(stiffness), ce, float(friction))
+        return HistoryParams(float(stiffness), ce, float(friction), float(stiffness_t), ce)
 
     def tangential_time(self, p: tuple, mt_eff: float) -> float:
         """Half period (s) of the tangential spring for effective tangential mass mt_eff (inf if none)."""
-        if not self.history or p.kt <= 0:
+        if not self.history or p.stiffness_t <= 0:
             return math.inf
-        return math.pi / math.sqrt(p.kt / mt_eff)
+        return math.pi / math.sqrt(p.stiffness_t / mt_eff)
 
 
 @njit(cache=True, inline="always", fastmath=FAST, error_model="numpy")
 def _normal(p, delta, nx, ny, nz, vx, vy, vz, m_eff):
     vn = vx * nx + vy * ny + vz * nz
     # seed 001 eq 8 (+ eq 18: gamma_n = ce * omega_0, 2 gamma_n M = 2 ce sqrt(kn M)); force on a along n
-    fn = -p.kn * delta - 2.0 * p.ce * math.sqrt(p.kn * m_eff) * vn
+    fn = -p.stiffness * delta - 2.0 * p.ce * math.sqrt(p.stiffness * m_eff) * vn
     return fn, vx - vn * nx, vy - vn * ny, vz - vn * nz  # seed 001 eqs 13-14
 
 
@@ -130,8 +133,8 @@ def linear(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, dt_eval,
     fy = fn * ny
     fz = fn * nz
     vt = math.sqrt(tx * tx + ty * ty + tz * tz)
-    if vt > 0.0 and p.mu > 0.0:
-        ft = p.mu * abs(fn)  # seed 001 eq 9
+    if vt > 0.0 and p.friction > 0.0:
+        ft = p.friction * abs(fn)  # seed 001 eq 9
         if dt_store > 0.0:
             ft = min(ft, mt_eff * vt / dt_store)
         s = -ft / vt  # t = u_t / |u_t| (seed 001 eq 15)
@@ -146,20 +149,20 @@ def _spring(p, fn_abs, tx, ty, tz, vt_damp, hx, hy, hz, dt):
     ex = hx + dt * tx
     ey = hy + dt * ty
     ez = hz + dt * tz
-    fx = -p.kt * ex - vt_damp * tx
-    fy = -p.kt * ey - vt_damp * ty
-    fz = -p.kt * ez - vt_damp * tz
+    fx = -p.stiffness_t * ex - vt_damp * tx
+    fy = -p.stiffness_t * ey - vt_damp * ty
+    fz = -p.stiffness_t * ez - vt_damp * tz
     f2 = fx * fx + fy * fy + fz * fz
-    cap = p.mu * fn_abs
+    cap = p.friction * fn_abs
     if f2 > cap * cap:  # Coulomb limit: slide, and reset the spring to the elongation the capped force implies
         s = cap / math.sqrt(f2)
         fx *= s
         fy *= s
         fz *= s
-        if p.kt > 0.0:
-            ex = -(fx + vt_damp * tx) / p.kt
-            ey = -(fy + vt_damp * ty) / p.kt
-            ez = -(fz + vt_damp * tz) / p.kt
+        if p.stiffness_t > 0.0:
+            ex = -(fx + vt_damp * tx) / p.stiffness_t
+            ey = -(fy + vt_damp * ty) / p.stiffness_t
+            ez = -(fz + vt_damp * tz) / p.stiffness_t
     return fx, fy, fz, ex, ey, ez
 
 
@@ -175,7 +178,7 @@ def linear_history(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, 
     px = hx - hn * nx
     py = hy - hn * ny
     pz = hz - hn * nz
-    damp = 2.0 * p.cet * math.sqrt(p.kt * mt_eff)
+    damp = 2.0 * p.cet * math.sqrt(p.stiffness_t * mt_eff)
     fabs = abs(fn)
     ftx, fty, ftz, ex, ey, ez = _spring(p, fabs, tx, ty, tz, damp, px, py, pz, dt_eval)
     if dt_store != dt_eval:
@@ -183,9 +186,10 @@ def linear_history(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, 
     return fn * nx + ftx, fn * ny + fty, fn * nz + ftz, ex, ey, ez
 
 
-GroupParams = namedtuple("GroupParams", "kn ce mu m_ref")
+GroupParams = namedtuple("GroupParams", "stiffness ce friction m_ref")
 GroupParams.__doc__ = (
-    "`linear` of the originals scaled per pair by TM (seed 000 eqs 24-25): kn (N/m), ce, mu of one original pair, "
+    "`linear` of the originals scaled per pair by TM (seed 000 eqs 24-25): stiffness (N/m), ce, friction of one "
+    "original pair, "
     "m_ref (kg) the effective mass of an original pair (m_O/2, or m_O for walls)."
 )
 
@@ -200,7 +204,7 @@ def linear_groups(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, d
     force is l^3 times the original pair's at overlap delta/l (seed 000 eq 24); Coulomb friction unchanged.
     """
     l_ = (m_eff / p.m_ref) ** (1.0 / 3.0)
-    kn = p.kn * l_ * l_
+    kn = p.stiffness * l_ * l_
     ce = min(p.ce * math.sqrt(l_), 0.99)
     vn = vx * nx + vy * ny + vz * nz
     fn = -kn * delta - 2.0 * ce * math.sqrt(kn * m_eff) * vn  # seed 001 eq 8 with seed 000 eq 24 scaling
@@ -211,8 +215,8 @@ def linear_groups(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, d
     ty = vy - vn * ny
     tz = vz - vn * nz
     vt = math.sqrt(tx * tx + ty * ty + tz * tz)
-    if vt > 0.0 and p.mu > 0.0:
-        ft = p.mu * abs(fn)  # seed 001 eq 9 / seed 000 eq 25
+    if vt > 0.0 and p.friction > 0.0:
+        ft = p.friction * abs(fn)  # seed 001 eq 9 / seed 000 eq 25
         if dt_store > 0.0:
             ft = min(ft, mt_eff * vt / dt_store)
         s = -ft / vt

@@ -312,7 +312,7 @@ def get_integrator(name: str) -> Integrator:
 
 
 def _tc(p, m_eff: float) -> float:
-    kn, ce = p.kn, p.ce
+    kn, ce = p.stiffness, p.ce
     if hasattr(p, "m_ref"):  # particle-groups (`linear_groups`): the pair's TM scaling, l^3 = m_eff / m_ref
         ratio = (m_eff / p.m_ref) ** (1.0 / 3.0)  # < 1 for pieces of a divisible original, as in the law
         kn, ce = kn * ratio * ratio, min(ce * math.sqrt(ratio), 0.999)

@@ -689,7 +689,7 @@ class DEM:
         r = 0.5 * P.diameter
         delta = r[i] + r[j] - np.linalg.norm(P.pos[j] - P.pos[i], axis=1)
         share = np.where(j < n, 1.0, 0.5)  # a contact with a ghost is counted half here, half by its owner
-        k = share * self.pp.kn
+        k = share * self.pp.stiffness
         m_ref = getattr(self.pp, "m_ref", None)
         if m_ref is not None:  # per-pair group scaling: k_n (m_eff / m_ref)^(2/3)
             k = k * (1.0 / (m_ref / P.mass[i] + m_ref / P.mass[j])) ** (2.0 / 3.0)
@@ -700,7 +700,7 @@ class DEM:
             scale = None if m_ref is None else (P.mass[:n] / m_ref) ** (2.0 / 3.0)
             sq = wall_overlap_squares(P.pos, r, n, self.wstart, self.wid, W.plane_p, W.plane_n, W.facets, W.nv,
                                       np.ones(n) if scale is None else scale)  # fmt: skip
-            e += 0.5 * self.pw.kn * sq
+            e += 0.5 * self.pw.stiffness * sq
         return self.global_sum(e)
 
     def potential_energy(self) -> float:

@@ -78,7 +78,7 @@ def _contact_duration(params, d, rho, dt_frac=1 / 2000):
     dem.add_particles(np.array([[0, 0, 0], [d * 1.0000001, 0, 0]]), d, rho, vel=np.array([[v0, 0, 0], [-v0, 0, 0]]))
     P = dem.particles
     m = P.mass[0]
-    w0 = math.sqrt(dem.pp.kn / (m / 2))
+    w0 = math.sqrt(dem.pp.stiffness / (m / 2))
     dt = math.pi / w0 * dt_frac
     t, t_in, t_out = 0.0, None, None
     for _ in range(int(4 / dt_frac)):
@@ -176,7 +176,7 @@ def test_group_contacts_scale_per_pair():
     for ratio in (1.0, 2.0, 3.0):
         m_eff = ratio**3 * M / 2
         q = tm_contact_params(p, ratio)
-        g = GroupParams(p.kn, p.ce, p.mu, M / 2)
+        g = GroupParams(p.stiffness, p.ce, p.friction, M / 2)
         args = (2e-6 * ratio, 0.0, 0.6, 0.8, 0.01, -0.03, 0.02, m_eff, m_eff * 2 / 7, 0.0, 0.0, 0.0, 1e-6, 1e-6)
         assert np.allclose(linear_groups(g, *args)[:3], linear(q, *args)[:3], rtol=1e-12, atol=0)
     # two groups of 8 originals colliding in a DEM: contact time of l = 2

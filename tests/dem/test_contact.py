@@ -114,7 +114,7 @@ def test_registries_and_bad_input():
     dem.add_particles(np.zeros((1, 3)), D, RHO)
     assert dem.critical_time() == pytest.approx(contact_time(KN, 0.9, M / 2), rel=1e-12)
     assert dem.dt == pytest.approx(dem.critical_time() / 6)
-    assert law.params(KN, 0.9, 0.3).mu == 0.3
+    assert law.params(KN, 0.9, 0.3).friction == 0.3
 
 
 @pytest.mark.parametrize("integrator", ["rk2", "verlet"])
