@@ -74,6 +74,23 @@ def test_momentum_exchange_is_newtons_third_law(tmp_path):
         assert np.allclose((dV[:, None] * Kv_i).sum(axis=0), (K[:, None] * v).sum(axis=0), rtol=1e-11, atol=1e-18)
 
 
+def test_particle_locations_are_current_exactly_when_the_rows_are_unchanged(tmp_path):
+    case = box_case(
+        tmp_path, (0.01, 0.01, 0.03), 0.002, gas={"boundary": {"inlet": {"type": "inlet", "velocity": 0.1}}}
+    )
+    s = coupled(case, tmp_path, lattice((0, 0, 0), (0.01, 0.01, 0.006), 0.002), 1e-3, 2500.0)
+    s.step()
+    assert s.located  # the projection located the particles at the end of the step
+    s.dem.advance(1)
+    assert not s.located
+    s.locate_particles()
+    assert s.located
+    s.dem.remove_particles(np.array([0]))
+    assert not s.located
+    s.step()
+    assert s.located and s.coupler.cell.size == s.dem.particles.n_owned
+
+
 def schiller_naumann_terminal(d, rho_p, rho_g, mu, g):
     """Terminal velocity of a sphere (m/s): (ρ_p − ρ_g) V g = 3π μ d v (1 + 0.15 Re^0.687), by bisection."""
     lo, hi = 0.0, (rho_p - rho_g) * g * d * d / (18 * mu)
