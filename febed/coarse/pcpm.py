@@ -64,9 +64,7 @@ from febed.coarse.pcpm_kernels import NO_CRUSH, crush_sizes, equivalent_diameter
 from febed.dem.forces import contact_power
 from febed.schema import MIN_GROUPS
 
-__all__ = [
-    "MIN_GROUPS", "NO_CRUSH", "EventStats", "GroupDynamics", "crush_sizes", "equivalent_diameter", "u_mf_wen_yu",
-]  # fmt: skip
+__all__ = ["NO_CRUSH", "EventStats", "GroupDynamics", "crush_sizes", "equivalent_diameter", "u_mf_wen_yu"]
 
 
 def u_mf_wen_yu(d: float, rho_p: float, rho_g: float, mu_g: float, g: float = 9.81) -> float:
@@ -327,4 +325,4 @@ class GroupDynamics:
         """(originals per full child, number of full children, originals in the remainder) of a crush (eqs 40-42)."""
         u = self.min_group
         k, n_full, rem = crush_sizes(int(round(n / u)), float(d), float(d_cl), self.d_orig * u ** (1.0 / 3.0))
-        return (k * u, n_full, rem * u) if u != 1.0 else (k, n_full, rem)
+        return k * u, n_full, rem * u
