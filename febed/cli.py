@@ -32,7 +32,6 @@ from pathlib import Path
 from mpi4py import MPI
 
 from febed.case import CaseError, load_case
-from febed.dem.solver import DEMFailure
 from febed.io.checkpoint import FOLDER, CheckpointError, checkpoint_identity, remove_temporaries
 from febed.io.rundir import (
     RESOLVED_CASE,
@@ -354,6 +353,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(args) -> int:
+    from febed.dem.solver import DEMFailure
     from febed.runs.lifecycle import InternalError, Interrupted, StopNow
     from febed.solver import RunFailure
 

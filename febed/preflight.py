@@ -43,14 +43,8 @@ from mpi4py import MPI
 
 import numpy as np
 
-from febed.bed import dem_from_case, insertion_region, inside_mesh, original_count
 from febed.case import Case, CaseError, Section
 from febed.coarse import setup as coarse
-from febed.coupling.drag import closure_sizes
-from febed.dem.insertion import BedError, load_bed
-from febed.dem.integrate import critical_time
-from febed.dem.particles import GID_LIMIT, Particles
-from febed.dem.walls import Walls
 from febed.meshing import MeshError, load_case_mesh
 from febed.schema import BOUNDARY
 
@@ -138,6 +132,8 @@ def preflight(case: Case, comm=MPI.COMM_WORLD, force: bool = False) -> Preflight
     bed = None
     bed_path = case.resolve_path(p.bed_file) if p.bed_file else None
     if bed_path is not None and bed_path.exists() and case.run.mode in DEM_MODES:
+        from febed.dem.insertion import BedError, load_bed
+
         try:
             bed, _ = load_bed(bed_path)
         except BedError as e:
@@ -155,6 +151,8 @@ def preflight(case: Case, comm=MPI.COMM_WORLD, force: bool = False) -> Preflight
                 problems.append(_mismatch_message(p.bed_file, bed_path, left, authoritative=True))
         problems += _outside(md, bed, p.bed_file, bed_path)
     elif case.run.mode in DEM_MODES and (p.count > 0 or p.bed_mass > 0):
+        from febed.bed import insertion_region
+
         try:
             insertion_region(case, md, md.gdim)
         except ValueError as e:
@@ -212,6 +210,8 @@ def _boundary_tags(case: Case, md) -> list[str]:
 # ------------------------------------------------------------------------------------------------- bed
 def _expected(case: Case, dim: int):
     """(count or None, parcel diameter of originals' rule, parcel density) the case would insert."""
+    from febed.bed import original_count
+
     p = case.particles
     count = None
     if p.count > 0 or p.bed_mass > 0:
@@ -226,7 +226,7 @@ def _original_diameters(case: Case, bed) -> np.ndarray:
     d = bed.diameter[:n]
     cg = case.coarse_grain
     if cg.model in ("tm", "pcpm"):
-        return closure_sizes(d, bed.n_orig[:n])[0]
+        return coarse.closure_sizes(d, bed.n_orig[:n])[0]
     if cg.model == "scg":
         return d / cg.ratio
     return d
@@ -316,6 +316,8 @@ def reconcile(case: Case, bed, dim: int) -> tuple[Case, list[str]]:
 
 def _outside(md, bed, name: str, path: Path) -> list[str]:
     """A problem if any bed particle lies outside the mesh (collective)."""
+    from febed.bed import inside_mesh
+
     n = bed.n_owned
     pos = bed.pos[:n]
     ok = inside_mesh(md, pos)
@@ -339,6 +341,8 @@ def _outside(md, bed, name: str, path: Path) -> list[str]:
 # -------------------------------------------------------------------------------------------- estimate
 def estimate(case: Case, md, bed, comm=MPI.COMM_WORLD) -> tuple[Estimate, list[str], list[str]]:
     """The run's `Estimate`, the refusals `--force` overrides and the problems it does not."""
+    from febed.dem.particles import GID_LIMIT
+
     mode = case.run.mode
     end = case.run.end_time
     ident = mesh_identity(md)
@@ -407,6 +411,11 @@ def estimate(case: Case, md, bed, comm=MPI.COMM_WORLD) -> tuple[Estimate, list[s
 
 def _dem_step(case: Case, dim: int, bed) -> float:
     """The DEM step T_C / dt_factor (s) of the case's contact law for the bed's (or inserted) lightest particles."""
+    from febed.bed import dem_from_case
+    from febed.dem.integrate import critical_time
+    from febed.dem.particles import Particles
+    from febed.dem.walls import Walls
+
     if bed is not None:
         n = bed.n_owned
         two = np.argsort(bed.mass[:n])[:2]

@@ -47,7 +47,6 @@ from febed.coupling.drag import (
     RECORD_K,
     RECORD_SET,
     RECORD_VEL,
-    closure_sizes,
 )
 from febed.coupling.exchange import Coupler
 from febed.coupling.locate import OUTSIDE_DOMAIN, OUTSIDE_LOCAL
@@ -436,10 +435,10 @@ class CoupledSolver:
         return f" (now largest between particles {int(P.gid[a])} and {int(P.gid[b])} near {P.pos[a].tolist()} m)"
 
     def _originals(self):
-        """Closure diameter (m) and count of each owned particle (`febed.coupling.drag.closure_sizes`)."""
+        """Closure diameter (m) and count of each owned particle (`febed.coarse.setup.closure_sizes`)."""
         P = self.dem.particles
         n = P.n_owned
-        return closure_sizes(P.diameter[:n], P.n_orig[:n])
+        return coarse.closure_sizes(P.diameter[:n], P.n_orig[:n])
 
     def fluid_state(self, relocate: bool = True):
         """Drag coefficient K_p (kg/s), drag F_D and pressure-gradient force F_P (N, 3) per owned particle.

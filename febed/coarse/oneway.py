@@ -23,7 +23,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from febed.coupling.drag import closure_sizes, drag_forces, get_drag_law
+from febed.coarse.setup import closure_sizes
+from febed.coupling.drag import drag_forces, get_drag_law
 from febed.gas.prescribed import PrescribedGas
 from febed.schema import check_fields, param, schema_field
 

@@ -7,7 +7,7 @@ divisible originals (`min_group` = 2^-j < 1, seed 000 sec 4: PCPM at l = 1 "unde
 particles are divisible") a crush may also split an original, down to pieces of `min_group` of one (diameter
 d_O min_group^{1/3}); every n is then a multiple of `min_group`, so sums of n stay exact in floating point. A
 piece (n < 1) is a particle of its own: its drag is that of one sphere of its diameter
-(`febed.coupling.drag.closure_sizes`), its contacts follow the same per-pair scaling as groups (k_n l², with l³
+(`febed.coarse.setup.closure_sizes`), its contacts follow the same per-pair scaling as groups (k_n l², with l³
 the pair's effective mass over an original pair's). `GroupDynamics.update` is called by the coupled loop once
 per gas step:
 

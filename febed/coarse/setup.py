@@ -13,13 +13,15 @@
 
 The drag of a particle of n_orig >= 1 originals is n_orig times that of one original of d / n_orig^(1/3) at its
 velocity, a piece of an original (n_orig < 1) has its own sphere's drag (the coupling does this for every
-model, `febed.coupling.drag.closure_sizes`). A packed bed file holds the particles as inserted, so a
+model, `closure_sizes`). A packed bed file holds the particles as inserted, so a
 coarse-grained case needs its own `bed_file`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import numpy as np
 
 from febed.coarse.scg import scg_count, scg_particles
 from febed.schema import MIN_GROUPS
@@ -78,6 +80,20 @@ def parcels(case, count_orig: int, dim: int = 3) -> ParcelSpec:
         d, rho = scg_particles(p.diameter, p.density, cg.ratio)
         return ParcelSpec(d, rho, scg_count(count_orig, cg.ratio), 1)
     return ParcelSpec(p.diameter, p.density, count_orig, 1)
+
+
+def closure_sizes(diameter: np.ndarray, n_orig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(d_orig, count) of particles of `diameter` (m) standing for `n_orig` originals each, for the closures.
+
+    A group of n >= 1 originals: n times one original of diameter d / n^{1/3}. A piece of an original (n < 1,
+    PCPM with divisible originals) is a particle of its own: once the drag of a sphere of its own diameter d.
+    The solid volume count π d_orig³ / 6 is n π d_O³ / 6 either way. Views of the inputs when no particle
+    stands for other than one whole original.
+    """
+    if n_orig.size == 0 or (n_orig.min() == 1.0 and n_orig.max() == 1.0):
+        return diameter, n_orig
+    count = np.maximum(n_orig, 1.0)
+    return diameter / np.cbrt(count), count
 
 
 def particle_depth(case) -> float:

@@ -12,7 +12,8 @@ density cancels out of m_p/τ_p. Written with C_D Re_p (finite at zero slip) so 
 
 Coarse-grained particles representing n_orig originals: K = n_orig * law(eps, slip, d_orig, ...), i.e. the
 drag of the parcel is n_orig times that of one original particle at the parcel's velocity (`drag_kernel`); a
-piece of a divisible original (n_orig < 1) has the drag of one sphere of its own diameter (`closure_sizes`).
+piece of a divisible original (n_orig < 1) has the drag of one sphere of its own diameter (the caller passes
+d_orig and the count from `febed.coarse.setup.closure_sizes`).
 
 Adding a law is one function with the signature above under `@drag_law("name")` and `@njit(cache=True)`;
 nothing else. `drag_law` registers a `DragLaw` (name + function) in `febed.schema.DRAG_LAWS`, which gives
@@ -297,20 +298,6 @@ def get_drag_law(name: str):
         return DRAG_LAWS.get(name)
     except KeyError as e:
         raise ValueError(f"drag: {e.args[0]}") from None
-
-
-def closure_sizes(diameter: np.ndarray, n_orig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(d_orig, count) of particles of `diameter` (m) standing for `n_orig` originals each, for the closures.
-
-    A group of n >= 1 originals: n times one original of diameter d / n^{1/3}. A piece of an original (n < 1,
-    PCPM with divisible originals) is a particle of its own: once the drag of a sphere of its own diameter d.
-    The solid volume count π d_orig³ / 6 is n π d_O³ / 6 either way. Views of the inputs when no particle
-    stands for other than one whole original.
-    """
-    if n_orig.size == 0 or (n_orig.min() == 1.0 and n_orig.max() == 1.0):
-        return diameter, n_orig
-    count = np.maximum(n_orig, 1.0)
-    return diameter / np.cbrt(count), count
 
 
 def drag_forces(law, eps, u, v, d_orig, n_orig, rho_g: float, mu_g: float, K=None, F=None):

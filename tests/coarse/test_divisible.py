@@ -10,8 +10,9 @@ import pytest
 
 from febed.case import CaseError, load_case
 from febed.coarse.pcpm import NO_CRUSH, GroupDynamics
+from febed.coarse.setup import closure_sizes
 from febed.coarse.tm import use_group_contacts
-from febed.coupling.drag import closure_sizes, drag_forces
+from febed.coupling.drag import drag_forces
 from febed.dem import DEM, DEMParams, Walls
 from febed.dem.insertion import random_positions
 from febed.dem.particles import Particles
