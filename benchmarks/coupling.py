@@ -18,7 +18,17 @@ from mpi4py import MPI
 
 import numpy as np
 
-from febed.coupling.drag import RECORD_COLUMNS, RECORD_FP, RECORD_K, drag_forces, gas_forces_kernel, get_drag_law
+from febed.coupling.drag import (
+    RECORD_COLUMNS,
+    RECORD_FP,
+    RECORD_K,
+    AtParticles,
+    GasForces,
+    NodalGas,
+    drag_forces,
+    gas_forces_kernel,
+    get_drag_law,
+)
 from febed.coupling.exchange import Coupler
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import locate
@@ -102,8 +112,12 @@ def run_case(label, msh, n, box, d, steps, depth=1.0):
         u3[:, :g] = u_p
         drag_forces("gidaspow-blend", eps_p, u3, v, d_orig, n_orig, 1.28, 1.7e-5)
         t.append(time.perf_counter())
-        gas_forces_kernel(law, ma.cell_dofs, cell, w, u_nodes, eps_nodes, gp_nodes, v, d_orig, n_orig, 1.28, 1.7e-5,
-                          True, K, F_d, F_p, eps_f)  # fmt: skip
+        gas_forces_kernel(
+            law,
+            AtParticles(ma.cell_dofs, cell, w, v, d_orig, n_orig),
+            NodalGas(u_nodes, eps_nodes, gp_nodes, 1.28, 1.7e-5, True),
+            GasForces.of(K, F_d, F_p, eps_f),
+        )
         t.append(time.perf_counter())
         if it == 0:
             continue  # compile

@@ -19,11 +19,15 @@ import numpy as np
 import febed
 from febed.dem.contact import LinearParams
 from febed.dem.forces import contact_power
+from febed.dem.records import Bodies, Lists
 pos = np.array([[0.0, 0.0, 0.0], [0.9e-3, 0.0, 0.0]])
 vel = np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
+z = np.zeros((2, 3))
+bodies = Bodies(pos, vel, z, z, z, z, np.full(2, 1e-3), np.full(2, 1e-6), np.full(2, 1e-13), 2, 2)
+lists = Lists(np.array([0, 1, 1]), np.array([1]), np.zeros((1, 3)), np.zeros(3, dtype=np.int64),
+              np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
 out = np.zeros(2)
-contact_power(pos, vel, np.zeros((2, 3)), np.full(2, 1e-3), np.full(2, 1e-6), 2, np.array([0, 1, 1]),
-              np.array([1]), np.zeros((1, 3)), LinearParams(1000.0, 0.0, 0.0), out)
+contact_power(bodies, lists, LinearParams(1000.0, 0.0, 0.0), out)
 print(repr(float(out[0])), os.environ["NUMBA_CACHE_DIR"])
 """
 

@@ -60,7 +60,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from febed.coarse.pcpm_kernels import NO_CRUSH, crush_sizes, equivalent_diameter, group_events
+from febed.coarse.pcpm_kernels import (
+    NO_CRUSH,
+    EventRules,
+    Events,
+    Groups,
+    Springs,
+    crush_sizes,
+    equivalent_diameter,
+    group_events,
+)
 from febed.dem.forces import contact_power
 from febed.schema import MIN_GROUPS
 
@@ -207,8 +216,7 @@ class GroupDynamics:
         out = np.zeros(n)
         if n == 0:
             return out
-        pl = dem.pairs
-        contact_power(P.pos, P.vel, P.omega, P.diameter, P.mass, n, pl.start, pl.nbr, pl.hist, dem.pp, out)
+        contact_power(dem.bodies(), dem.lists(), dem.pp, out)
         return out
 
     def equivalent_diameter(self, dem, eps_at_p, u_at_p, f_drag, e_cc=None) -> np.ndarray:
@@ -257,16 +265,17 @@ class GroupDynamics:
         new_n = np.empty(cap)
         removed = np.zeros(n, dtype=bool)
         counts = np.zeros(6, dtype=np.int64)
-        W = dem.walls
         de = np.zeros(2)
-        m = group_events(
+        groups = Groups(
             pos, np.ascontiguousarray(P.vel[:n]), np.ascontiguousarray(P.omega[:n]), diam,
-            np.ascontiguousarray(P.mass[:n_all]), np.ascontiguousarray(P.n_orig[:n]), n, n_all, turn, self.d_orig,
-            self.min_group, dem.params.dim == 2, d_cl, self.crush, self.merge, self.max_group, self.merge_tol,
-            self.tol, self.tries, int(self.rng.integers(0, 2**31 - 1)), W.plane_p, W.plane_n, W.facets, W.nv,
-            *self._springs(dem.pp), *self._springs(dem.pw), np.asarray(dem.gvec, dtype=float), self.conserve_energy,
-            removed, new_pos, new_vel, new_omega, new_n, counts, de,
+            np.ascontiguousarray(P.mass[:n_all]), np.ascontiguousarray(P.n_orig[:n]), n, n_all,
         )  # fmt: skip
+        rules = EventRules(self.d_orig, self.min_group, dem.params.dim == 2, self.crush, self.merge, self.max_group,
+                           self.merge_tol, self.tol, self.tries, self.conserve_energy)  # fmt: skip
+        springs = Springs(*self._springs(dem.pp), *self._springs(dem.pw), np.asarray(dem.gvec, dtype=float))
+        out = Events(removed, new_pos, new_vel, new_omega, new_n, counts, de)
+        seed = int(self.rng.integers(0, 2**31 - 1))
+        m = group_events(groups, d_cl, turn, seed, rules, dem.walls.geometry, springs, out)
         stats.crushed, stats.children, stats.merged = int(counts[0]), int(counts[1]), int(counts[2])
         stats.crush_deferred, stats.merge_deferred, stats.conflicts = int(counts[3]), int(counts[4]), int(counts[5])
         if m:

@@ -10,6 +10,7 @@ choices where the paper is silent.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -17,6 +18,56 @@ from numba import njit
 from febed.dem.walls import wall_distance, wall_point
 
 NO_CRUSH = np.inf  # d_cl where it is not positive and finite: the group does not crush
+
+
+class Groups(NamedTuple):
+    """The groups of one evaluation: rows [0, n) this rank's, [n, n_all) ghosts (obstacles only)."""
+
+    pos: np.ndarray  # (n_all, 3) m
+    vel: np.ndarray  # (n, 3) m/s
+    omega: np.ndarray  # (n, 3) rad/s
+    diam: np.ndarray  # (n_all,) m
+    mass: np.ndarray  # (n_all,) kg
+    n_orig: np.ndarray  # (n,) originals per group
+    n: int
+    n_all: int
+
+
+class EventRules(NamedTuple):
+    """How groups crush and merge (`febed.coarse.pcpm.GroupDynamics`'s settings)."""
+
+    d_orig: float  # m: an original particle's diameter
+    unit: float  # the smallest group, in originals (1, or 2^-j with divisible originals)
+    dim2: bool  # 2D: children placed in a disk
+    do_crush: bool
+    do_merge: bool
+    n_max: float  # largest group a merge may make, in originals
+    merge_tol: float  # relative velocity below which touching groups merge
+    tol: float  # overlap allowed after an event, relative to the smaller diameter
+    tries: int  # placement draws per child
+    conserve: bool  # accept an event only if it does not add energy
+
+
+class Springs(NamedTuple):
+    """The contact springs the events' elastic energy is counted with, and gravity."""
+
+    kn_pp: float  # N/m: particle-particle normal stiffness
+    mref_pp: float  # kg: > 0 for per-pair group scaling k_n (m_eff / m_ref)^(2/3), 0 for a fixed k_n
+    kn_pw: float  # N/m: particle-wall
+    mref_pw: float  # kg
+    gvec: np.ndarray  # (3,) m/s^2
+
+
+class Events(NamedTuple):
+    """What `group_events` writes: the parents removed and the new groups."""
+
+    removed: np.ndarray  # (n,) bool: parents of a crush or merge
+    new_pos: np.ndarray  # (cap, 3) m
+    new_vel: np.ndarray  # (cap, 3) m/s
+    new_omega: np.ndarray  # (cap, 3) rad/s
+    new_n: np.ndarray  # (cap,) originals per new group
+    counts: np.ndarray  # (6,) int: crushed, children, merged, crush deferred, merge deferred, conflicts
+    de: np.ndarray  # (2,) J: summed energy change of the accepted crushes and merges
 
 
 @njit(cache=True)
@@ -130,10 +181,10 @@ def _overlap_static(x, y, z, r, pos, diam, skip1, skip2, lo, h, dims, head, nxt,
 
 
 @njit(cache=True)
-def _overlap_walls(x, y, z, r, plane_p, plane_n, facets, nv):
+def _overlap_walls(x, y, z, r, walls):
     worst = 0.0
-    for w in range(plane_p.shape[0] + facets.shape[0]):
-        ov = r - wall_distance(x, y, z, w, plane_p, plane_n, facets, nv)
+    for w in range(walls.plane_p.shape[0] + walls.facets.shape[0]):
+        ov = r - wall_distance(x, y, z, w, walls)
         if ov > 0.0:
             worst = max(worst, ov / (2.0 * r))
     return worst
@@ -169,11 +220,11 @@ def _energy_static(x, y, z, r, mq, pos, diam, mass, skip1, skip2, lo, h, dims, h
 
 
 @njit(cache=True)
-def _energy_walls(x, y, z, r, mq, plane_p, plane_n, facets, nv, kn, m_ref):
+def _energy_walls(x, y, z, r, mq, walls, kn, m_ref):
     """Spring energy (J) of a sphere (x, r, mass mq) against its nearest wall (as `DEM.elastic_energy`)."""
     best = np.inf
-    for w in range(plane_p.shape[0] + facets.shape[0]):
-        best = min(best, wall_distance(x, y, z, w, plane_p, plane_n, facets, nv))
+    for w in range(walls.plane_p.shape[0] + walls.facets.shape[0]):
+        best = min(best, wall_distance(x, y, z, w, walls))
     if r > best:
         return 0.5 * _stiffness(kn, m_ref, mq, np.inf) * (r - best) ** 2
     return 0.0
@@ -198,7 +249,7 @@ def _conflicts(x, y, z, ext, ev, n_ev):
 
 @njit(cache=True)
 def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, target, lo, h, dims, head, nxt, rmax,
-                    plane_p, plane_n, facets, nv, kids):  # fmt: skip
+                    walls, kids):  # fmt: skip
     """Centres of the nk children of group i in kids[:nk] (x, y, z, r); False if an overlap would exceed tol.
 
     The siblings are relaxed apart until their largest overlap is at most `target` (fraction of the smaller
@@ -221,7 +272,7 @@ def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, target
             y = pos[i, 1] + R * qy
             z = pos[i, 2] + R * qz
             s = _overlap_static(x, y, z, rc, pos, diam, i, i, lo, h, dims, head, nxt, rmax)
-            s = max(s, _overlap_walls(x, y, z, rc, plane_p, plane_n, facets, nv))
+            s = max(s, _overlap_walls(x, y, z, rc, walls))
             sib = -np.inf  # relative overlap with the closest sibling: negative = gap, maximised
             for b in range(c):
                 dist = math.sqrt((kids[b, 0] - x) ** 2 + (kids[b, 1] - y) ** 2 + (kids[b, 2] - z) ** 2)
@@ -273,7 +324,7 @@ def _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, target
     for c in range(nk):
         x, y, z, rc = kids[c, 0], kids[c, 1], kids[c, 2], kids[c, 3]
         s = _overlap_static(x, y, z, rc, pos, diam, i, i, lo, h, dims, head, nxt, rmax)
-        s = max(s, _overlap_walls(x, y, z, rc, plane_p, plane_n, facets, nv))
+        s = max(s, _overlap_walls(x, y, z, rc, walls))
         for b in range(c):
             dist = math.sqrt((kids[b, 0] - x) ** 2 + (kids[b, 1] - y) ** 2 + (kids[b, 2] - z) ** 2)
             s = max(s, (rc + kids[b, 3] - dist) / (2.0 * min(rc, kids[b, 3])))
@@ -304,8 +355,7 @@ def _near_ghosts(pos, diam, n, lo, h, dims, head, nxt, rmax, out):
 
 
 @njit(cache=True)
-def _relax_merged(x, y, z, rn, i, j, smax, dim2, pos, diam, lo, h, dims, head, nxt, rmax, plane_p, plane_n, facets,
-                  nv):  # fmt: skip
+def _relax_merged(x, y, z, rn, i, j, smax, dim2, pos, diam, lo, h, dims, head, nxt, rmax, walls):  # fmt: skip
     """Centre of a merged group of radius rn moved from (x, y, z) out of its overlaps, by at most smax (m).
 
     Pushes of the overlaps with the other groups (not i, j) and the walls, 20 sweeps at most.
@@ -333,11 +383,11 @@ def _relax_merged(x, y, z, rn, i, j, smax, dim2, pos, diam, lo, h, dims, head, n
                                 pz += ov * dz / dist
                                 hit = True
                         q = nxt[q]
-        for w in range(plane_p.shape[0] + facets.shape[0]):
-            qx, qy, qz, _kind, sd = wall_point(x, y, z, w, plane_p, plane_n, facets, nv)
-            if w < plane_p.shape[0]:
+        for w in range(walls.plane_p.shape[0] + walls.facets.shape[0]):
+            qx, qy, qz, _kind, sd = wall_point(x, y, z, w, walls)
+            if w < walls.plane_p.shape[0]:
                 ov = rn - sd
-                nx, ny, nz = plane_n[w, 0], plane_n[w, 1], plane_n[w, 2]
+                nx, ny, nz = walls.plane_n[w, 0], walls.plane_n[w, 1], walls.plane_n[w, 2]
             else:
                 dist = math.sqrt((x - qx) ** 2 + (y - qy) ** 2 + (z - qz) ** 2)
                 ov = rn - dist
@@ -365,7 +415,7 @@ def _relax_merged(x, y, z, rn, i, j, smax, dim2, pos, diam, lo, h, dims, head, n
 
 @njit(cache=True)
 def _merge_energy(i, j, x, y, z, cx, cy, cz, rn, pos, vel, omega, diam, mass, lo, h, dims, head, nxt, rmax,
-                  plane_p, plane_n, facets, nv, kn_pp, mref_pp, kn_pw, mref_pw, gvec):  # fmt: skip
+                  walls, kn_pp, mref_pp, kn_pw, mref_pw, gvec):  # fmt: skip
     """ΔE (J) of merging rows i, j (centre of mass c) into one group of radius rn at (x, y, z) (`group_events`).
 
     Kinetic: the relative translation energy and some spin energy are lost (momentum and the summed I ω kept);
@@ -386,23 +436,23 @@ def _merge_energy(i, j, x, y, z, cx, cy, cz, rn, pos, vel, omega, diam, mass, lo
         e -= 0.5 * mi * vel[i, a] ** 2 + 0.5 * mj * vel[j, a] ** 2
         e -= 0.5 * ii * omega[i, a] ** 2 + 0.5 * jj * omega[j, a] ** 2
     e += _energy_static(x, y, z, rn, mn, pos, diam, mass, i, j, lo, h, dims, head, nxt, rmax, kn_pp, mref_pp)
-    e += _energy_walls(x, y, z, rn, mn, plane_p, plane_n, facets, nv, kn_pw, mref_pw)
+    e += _energy_walls(x, y, z, rn, mn, walls, kn_pw, mref_pw)
     for p in (i, j):
         rp = 0.5 * diam[p]
         e -= _energy_static(pos[p, 0], pos[p, 1], pos[p, 2], rp, mass[p], pos, diam, mass, i, j, lo, h, dims, head,
                             nxt, rmax, kn_pp, mref_pp)  # fmt: skip
-        e -= _energy_walls(pos[p, 0], pos[p, 1], pos[p, 2], rp, mass[p], plane_p, plane_n, facets, nv, kn_pw, mref_pw)
+        e -= _energy_walls(pos[p, 0], pos[p, 1], pos[p, 2], rp, mass[p], walls, kn_pw, mref_pw)
     e -= _pair_energy(i, j, pos, diam, mass, kn_pp, mref_pp)
     return e
 
 
 @njit(cache=True)
-def group_events(
-    pos, vel, omega, diam, mass, n_orig, n, n_all, turn, d_orig, unit, dim2, d_cl, do_crush, do_merge, n_max,
-    merge_tol, tol, tries, seed, plane_p, plane_n, facets, nv, kn_pp, mref_pp, kn_pw, mref_pw, gvec, conserve,
-    removed, new_pos, new_vel, new_omega, new_n, counts, de,
-):  # fmt: skip
+def group_events(groups, d_cl, turn, seed, rules, walls, springs, out):
     """Crush and merge events of one evaluation over rows [0, n); returns the number of new groups written.
+
+    groups: `Groups`; d_cl (n,) m: each group's equivalent diameter; turn: this rank's turn (below); seed: of
+    the placement draws; rules: `EventRules`; walls: `febed.dem.walls.WallGeometry`; springs: `Springs`;
+    out: `Events`, written.
 
     Rows [n, n_all) are another rank's groups (MPI ghosts): obstacles for the overlap checks, never part of an
     event. Unless `turn`, a group within 2 largest radii of a ghost takes part in no event either (it waits
@@ -429,6 +479,10 @@ def group_events(
     `removed` (n,) marks parents; counts: [crushed, children, merged, crush deferred, merge deferred, conflicts];
     de (2,) receives the summed ΔE (J) of the accepted crushes and merges.
     """
+    pos, vel, omega, diam, mass, n_orig, n, n_all = groups
+    d_orig, unit, dim2, do_crush, do_merge, n_max, merge_tol, tol, tries, conserve = rules
+    kn_pp, mref_pp, kn_pw, mref_pw, gvec = springs
+    removed, new_pos, new_vel, new_omega, new_n, counts, de = out
     np.random.seed(seed)  # noqa: NPY002 (Numba supports only the legacy API)
     rmax = 0.0
     for i in range(n_all):
@@ -474,14 +528,14 @@ def group_events(
         mi = mass[i]
         e_old = _energy_static(pos[i, 0], pos[i, 1], pos[i, 2], R, mi, pos, diam, mass, i, i, lo, h, dims, head, nxt,
                                rmax, kn_pp, mref_pp)  # fmt: skip
-        e_old += _energy_walls(pos[i, 0], pos[i, 1], pos[i, 2], R, mi, plane_p, plane_n, facets, nv, kn_pw, mref_pw)
+        e_old += _energy_walls(pos[i, 0], pos[i, 1], pos[i, 2], R, mi, walls, kn_pw, mref_pw)
         w2 = omega[i, 0] ** 2 + omega[i, 1] ** 2 + omega[i, 2] ** 2
         e_old += 0.5 * 0.1 * mi * diam[i] ** 2 * w2  # I = m d² / 10 (solid sphere, as `Particles`)
         ok = False
         d_e = 0.0
         for _attempt in range(4):  # a few fresh attempts before deferring the crush
             ok = _place_children(i, nk, r_rem, r_full, R, pos, diam, dim2, tries, tol, 0.0 if conserve else 0.5 * tol,
-                                 lo, h, dims, head, nxt, rmax, plane_p, plane_n, facets, nv, kids)  # fmt: skip
+                                 lo, h, dims, head, nxt, rmax, walls, kids)  # fmt: skip
             if ok:
                 d_e = -e_old
                 for c in range(nk):
@@ -489,7 +543,7 @@ def group_events(
                     mc = mi * (rc / R) ** 3
                     d_e += _energy_static(kids[c, 0], kids[c, 1], kids[c, 2], rc, mc, pos, diam, mass, i, i, lo, h,
                                           dims, head, nxt, rmax, kn_pp, mref_pp)  # fmt: skip
-                    d_e += _energy_walls(kids[c, 0], kids[c, 1], kids[c, 2], rc, mc, plane_p, plane_n, facets, nv,
+                    d_e += _energy_walls(kids[c, 0], kids[c, 1], kids[c, 2], rc, mc, walls,
                                          kn_pw, mref_pw)  # fmt: skip
                     d_e += 0.5 * 0.1 * mc * (2.0 * rc) ** 2 * w2
                     d_e -= mc * ((kids[c, 0] - pos[i, 0]) * gvec[0] + (kids[c, 1] - pos[i, 1]) * gvec[1]
@@ -569,12 +623,12 @@ def group_events(
                                     if smax > 0.0:
                                         x, y, z = _relax_merged(
                                             x, y, z, rn, i, j, smax, dim2, pos, diam, lo, h, dims, head, nxt, rmax,
-                                            plane_p, plane_n, facets, nv,
+                                            walls,
                                         )  # fmt: skip
                                     s = _overlap_static(x, y, z, rn, pos, diam, i, j, lo, h, dims, head, nxt, rmax)
-                                    s = max(s, _overlap_walls(x, y, z, rn, plane_p, plane_n, facets, nv))
+                                    s = max(s, _overlap_walls(x, y, z, rn, walls))
                                     d_e = _merge_energy(i, j, x, y, z, cx, cy, cz, rn, pos, vel, omega, diam, mass,
-                                                        lo, h, dims, head, nxt, rmax, plane_p, plane_n, facets, nv,
+                                                        lo, h, dims, head, nxt, rmax, walls,
                                                         kn_pp, mref_pp, kn_pw, mref_pw, gvec)  # fmt: skip
                                     if s > tol or (conserve and d_e > 0.0):
                                         counts[4] += 1

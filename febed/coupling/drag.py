@@ -30,6 +30,7 @@ kernels already cached with it.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, types
@@ -320,40 +321,71 @@ def drag_forces(law, eps, u, v, d_orig, n_orig, rho_g: float, mu_g: float, K=Non
     return K, F
 
 
-def gas_forces_kernel(law, *args):
-    """`_gas_forces` for a law given by name, `DragLaw` or function (see there)."""
-    _gas_forces(as_drag_law(law), *args)
+class AtParticles(NamedTuple):
+    """The particles as the gas forces see them: their cells and node weights, velocities and sizes."""
+
+    cell_dofs: np.ndarray  # (cells, nv) int: each cell's nodes
+    cell: np.ndarray  # (N,) int32: each particle's cell (-1: not located)
+    w: np.ndarray  # (N, nv): node weights (`febed.coupling.weights`)
+    v: np.ndarray  # (N, 3) m/s
+    d_orig: np.ndarray  # (N,) m: the diameter the drag law sees
+    n_orig: np.ndarray  # (N,): originals each particle carries
+
+
+class NodalGas(NamedTuple):
+    """The gas at the mesh nodes and its properties."""
+
+    u: np.ndarray  # (nodes, gdim) m/s
+    eps: np.ndarray  # (nodes,) void fraction
+    gradp: np.ndarray  # (nodes, gdim) Pa/m
+    rho: float  # kg/m^3
+    mu: float  # Pa s
+    pressure_gradient: bool  # add F_P = -V_p grad p (seed 001 eq 27)
+
+
+class GasForces(NamedTuple):
+    """What `gas_forces_into` writes; an output with 0 rows is skipped (`GasForces.of` fills those)."""
+
+    K: np.ndarray  # (N,) kg/s
+    F_d: np.ndarray  # (N, 3) N: drag
+    F_p: np.ndarray  # (N, 3) N: pressure-gradient force
+    eps_p: np.ndarray  # (N,): void fraction at the particle
+    record: np.ndarray  # (N, RECORD_COLUMNS): the exchange record (`RECORD_*` columns)
+    mass: np.ndarray  # (N,) kg, an input: with it the kernel returns min m_p / K_p
+
+    @classmethod
+    def of(cls, K=None, F_d=None, F_p=None, eps_p=None, record=None, mass=None) -> GasForces:
+        """The outputs given, empty arrays (skipped) for the others."""
+        return cls(
+            _NONE1 if K is None else K, _NONE3 if F_d is None else F_d, _NONE3 if F_p is None else F_p,
+            _NONE1 if eps_p is None else eps_p, _NO_RECORD if record is None else record,
+            _NONE1 if mass is None else mass,
+        )  # fmt: skip
+
+
+_NONE1 = np.empty(0)
+_NONE3 = np.empty((0, 3))
+_NO_RECORD = np.empty((0, RECORD_COLUMNS))
+
+
+def gas_forces_kernel(law, parts: AtParticles, gas: NodalGas, out: GasForces) -> float:
+    """`gas_forces_into` for a law given by name, `DragLaw` or function (see there)."""
+    return gas_forces_into(as_drag_law(law), parts, gas, out)
 
 
 @njit(cache=True)
-def _gas_forces(
-    law, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
-    F_p, eps_p,
-):  # fmt: skip
+def gas_forces_into(law, parts, gas, out):
     """Fused per-sub-step kernel: interpolate u, ε, ∇p (seed 001 eq 28), then drag (eq 20) and -V_p ∇p (eq 27).
 
-    u_nodes, gradp_nodes (nd, gdim), eps_nodes (nd,); v (N, 3); outputs K (N,) kg/s, F_d, F_p (N, 3) N and
-    eps_p (N,). Same results as `interpolate` + `drag_kernel` + `pressure_gradient_kernel`, in one pass.
-    Unlocated particles (cell < 0) get zero K, forces and ε.
-    """
-    gas_forces_into(
-        law, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K,
-        F_d, F_p, eps_p, np.empty((0, RECORD_COLUMNS)), np.empty(0),
-    )  # fmt: skip
-
-
-@njit(cache=True)
-def gas_forces_into(
-    law, cell_dofs, cell, w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, rho_g, mu_g, with_pressure, K, F_d,
-    F_p, eps_p, aux, mass,
-):  # fmt: skip
-    """`_gas_forces`, also filling the solver's per-particle exchange record and returning min m_p/K_p (s).
-
-    Outputs with 0 rows are skipped (K, F_d, F_p, eps_p, aux: pass `np.empty((0, ...))` for those not wanted).
-    If aux (N, RECORD_COLUMNS) has N rows, row p gets K_p, F_D + F_P, v_p, F_P and 1 in the `RECORD_*` columns; if mass
+    parts: `AtParticles`; gas: `NodalGas`; out: `GasForces`. Same results as `interpolate` + `drag_kernel` +
+    `pressure_gradient_kernel`, in one pass; unlocated particles (cell < 0) get zero K, forces and ε.
+    If out.record has N rows, row p gets K_p, F_D + F_P, v_p, F_P and 1 in the `RECORD_*` columns; if out.mass
     (N,) kg is given, returns min_p m_p / max(K_p, 1e-300) (the shortest particle relaxation time τ_p; NaN if
     any is NaN, inf without particles), else inf.
     """
+    cell_dofs, cell, w, v, d_orig, n_orig = parts
+    u_nodes, eps_nodes, gradp_nodes, rho_g, mu_g, with_pressure = gas
+    K, F_d, F_p, eps_p, aux, mass = out
     nv = w.shape[1]
     g = u_nodes.shape[1]
     with_k = K.shape[0] > 0

@@ -26,6 +26,9 @@ import numpy as np
 
 from febed.coupling.drag import (
     RECORD_COLUMNS,
+    AtParticles,
+    GasForces,
+    NodalGas,
     drag_forces,
     gas_forces_into,
     gas_forces_kernel,
@@ -36,8 +39,6 @@ from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.mesh_arrays import NUM_VERTICES, MeshArrays
 from febed.coupling.projection import exchange_finish_kernel, exchange_project_kernel, filter_kernel
-
-_NONE1, _NONE3 = np.empty(0), np.empty((0, 3))  # outputs `gas_forces_into` skips
 
 
 @dataclass
@@ -155,10 +156,8 @@ class Coupler:
         F_d = np.empty((n, 3))
         F_p = np.empty((n, 3))
         eps_p = np.empty(n)
-        gas_forces_kernel(
-            self.law, self.ma.cell_dofs, self.cell, self.w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig,
-            self.rho_g, self.mu_g, self.pressure_gradient, K, F_d, F_p, eps_p,
-        )  # fmt: skip
+        gas_forces_kernel(self.law, self._at(v, d_orig, n_orig), self._gas(u_nodes, eps_nodes, gradp_nodes),
+                          GasForces.of(K, F_d, F_p, eps_p))  # fmt: skip
         return K, F_d, F_p, eps_p
 
     def forces_into(self, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig, record, mass, drag=None) -> float:
@@ -170,15 +169,18 @@ class Coupler:
         receives F_D (N).
         """
         n = self.cell.size
-        drag = _NONE3 if drag is None else drag
         c = RECORD_COLUMNS
-        if record.shape != (n, c) or mass.shape != (n,) or v.shape != (n, 3) or drag.shape[0] not in (0, n):
+        out = GasForces.of(F_d=drag, record=record, mass=mass)
+        if record.shape != (n, c) or mass.shape != (n,) or v.shape != (n, 3) or out.F_d.shape[0] not in (0, n):
             raise ValueError(f"record, mass, v, drag: need shapes ({n}, {c}), ({n},), ({n}, 3), ({n}, 3), got "
-                             f"{record.shape}, {mass.shape}, {v.shape}, {drag.shape}")  # fmt: skip
-        return gas_forces_into(
-            self.law, self.ma.cell_dofs, self.cell, self.w, u_nodes, eps_nodes, gradp_nodes, v, d_orig, n_orig,
-            self.rho_g, self.mu_g, self.pressure_gradient, _NONE1, drag, _NONE3, _NONE1, record, mass,
-        )  # fmt: skip
+                             f"{record.shape}, {mass.shape}, {v.shape}, {out.F_d.shape}")  # fmt: skip
+        return gas_forces_into(self.law, self._at(v, d_orig, n_orig), self._gas(u_nodes, eps_nodes, gradp_nodes), out)
+
+    def _at(self, v, d_orig, n_orig) -> AtParticles:
+        return AtParticles(self.ma.cell_dofs, self.cell, self.w, v, d_orig, n_orig)
+
+    def _gas(self, u_nodes, eps_nodes, gradp_nodes) -> NodalGas:
+        return NodalGas(u_nodes, eps_nodes, gradp_nodes, self.rho_g, self.mu_g, self.pressure_gradient)
 
     def project_to_gas(self, d_orig, n_orig, K, v, F_explicit=None, owned=None) -> NodalExchange:
         """Project solid volume, K, K v and an explicit particle force onto the nodes; filter; divide (collective).

@@ -15,6 +15,8 @@ Status codes returned per particle:
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -31,6 +33,39 @@ from febed.coupling.weights import fill_weights
 FOUND, OUTSIDE_DOMAIN, OUTSIDE_LOCAL = 0, 1, 2
 INSIDE_TOL = 1e-10  # tolerance on reference coordinates for "inside"
 _NEWTON_ITERS = 30
+
+
+class CellMesh(NamedTuple):
+    """The local cells as the location kernels take them (from `MeshArrays`, see `locate`)."""
+
+    kind: int  # TRIANGLE, QUADRILATERAL, TETRAHEDRON or HEXAHEDRON
+    gdim: int
+    cell_dofs: np.ndarray  # (cells, nv) int: each cell's nodes
+    x_dofs: np.ndarray  # (nodes, 3) m
+    affine: np.ndarray  # (cells,) bool: affine map (a simplex, or a parallelogram/parallelepiped)
+    cell_nbr: np.ndarray  # (cells, facets) int: the neighbour across each facet (< 0: none, see NBR_*)
+    cell_facets: np.ndarray  # (cells, facets) int: local topology facet index of each facet
+    bbox: np.ndarray  # (cells, 2, 3) m: each cell's bounding box
+
+
+class CellGrid(NamedTuple):
+    """The uniform grid of bins over the local cells of `MeshArrays`: bin b lists cells[start[b]:start[b + 1]]."""
+
+    origin: np.ndarray  # (3,) m
+    h: np.ndarray  # (3,) m: bin size
+    n: np.ndarray  # (3,) int: bins along each axis
+    start: np.ndarray  # (bins + 1,) int
+    cells: np.ndarray  # int
+
+
+class Location(NamedTuple):
+    """Where points are, filled by `locate_kernel`: one row per point."""
+
+    cell: np.ndarray  # (N,) int32: in: the cell to walk from (-1 = unknown); out: the cell holding it (-1 = none)
+    ref: np.ndarray  # (N, 3): reference coordinates in that cell
+    status: np.ndarray  # (N,) int8: FOUND, OUTSIDE_DOMAIN or OUTSIDE_LOCAL
+    exit_facet: np.ndarray  # (N,) int32: the boundary facet an OUTSIDE_DOMAIN walk left through, else -1
+    w: np.ndarray  # (N, nv) node weights (`febed.coupling.weights`), or 0 rows: not computed
 
 
 @njit(cache=True)
@@ -239,8 +274,10 @@ def reference_coords(kind, gdim, cell_dofs, x_dofs, affine, c, px, py, pz):
 
 
 @njit(cache=True)
-def _grid_search(kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, start, cells, px, py, pz):
+def _grid_search(mesh, grid, px, py, pz):
     """Cell of the grid bin of (px, py, pz) holding the point: (cell or -1, ξ, η, ζ)."""
+    kind, gdim, cell_dofs, x_dofs, affine, _nbr, _facets, bbox = mesh
+    origin, h, n, start, cells = grid
     b = 0
     for a in range(3):
         xa = px if a == 0 else (py if a == 1 else pz)
@@ -265,8 +302,9 @@ def _grid_search(kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, star
 
 
 @njit(cache=True)
-def _nearest_start(origin, h, n, start, cells, px, py, pz):
+def _nearest_start(grid, px, py, pz):
     """A cell of the grid bin nearest to the point (clamped into the grid), to start a classifying walk; -1 if none."""
+    origin, h, n, start, cells = grid
     idx = np.empty(3, dtype=np.int64)
     for a in range(3):
         xa = px if a == 0 else (py if a == 1 else pz)
@@ -283,15 +321,14 @@ def _nearest_start(origin, h, n, start, cells, px, py, pz):
 
 
 @njit(cache=True)
-def locate_kernel(
-    kind, gdim, cell_dofs, x_dofs, affine, cell_nbr, cell_facets, bbox, origin, h, n, start, cells, x, cell, ref,
-    status, exit_facet, max_steps, w,
-):  # fmt: skip
-    """Locate points x (N, 3) starting from `cell` (in/out, -1 = unknown); fill ref, status, exit_facet.
+def locate_kernel(mesh, grid, x, loc, max_steps):
+    """Locate points x (N, 3) in the cells of `mesh` (CellMesh, its CellGrid), walking at most max_steps cells.
 
-    If w has N rows, also fills the node weights (`febed.coupling.weights`, zero where not found). Returns the
-    number of points not found in the local mesh.
+    Fills `loc` (Location), walking from loc.cell; if loc.w has N rows, also the node weights
+    (`febed.coupling.weights`, zero where not found). Returns the number of points not found in the local mesh.
     """
+    kind, gdim, cell_dofs, x_dofs, affine, cell_nbr, cell_facets, _bbox = mesh
+    cell, ref, status, exit_facet, w = loc
     with_w = w.shape[0] > 0
     nc = cell_dofs.shape[0]
     simplex = kind == TRIANGLE or kind == TETRAHEDRON
@@ -308,12 +345,10 @@ def locate_kernel(
         for attempt in range(2):
             if attempt == 1:
                 # fallback: the grid index; if that fails too, a walk from a nearby cell classifies the exit
-                found, r0, r1, r2 = _grid_search(
-                    kind, gdim, cell_dofs, x_dofs, affine, bbox, origin, h, n, start, cells, px, py, pz
-                )
+                found, r0, r1, r2 = _grid_search(mesh, grid, px, py, pz)
                 if found >= 0 or last_c >= 0:
                     break
-                c = _nearest_start(origin, h, n, start, cells, px, py, pz)
+                c = _nearest_start(grid, px, py, pz)
             if c < 0 or c >= nc:
                 continue
             for _s in range(max_steps):
@@ -411,11 +446,9 @@ def locate(
         w = np.empty((0, nv))
     elif w.shape != (n, nv) or w.dtype != np.float64:
         raise ValueError(f"w: must be a float64 array of shape ({n}, {nv}), got {w.dtype} {w.shape}")
-    missing = locate_kernel(
-        ma.kind, ma.gdim, ma.cell_dofs, ma.x_dofs, ma.cell_affine, ma.cell_nbr, ma.cell_facets, ma.bbox,
-        ma.grid_origin, ma.grid_h, ma.grid_n, ma.grid_start, ma.grid_cells, x, cell, ref, status, exit_facet, max_steps,
-        w,
-    )  # fmt: skip
+    mesh = CellMesh(ma.kind, ma.gdim, ma.cell_dofs, ma.x_dofs, ma.cell_affine, ma.cell_nbr, ma.cell_facets, ma.bbox)
+    grid = CellGrid(ma.grid_origin, ma.grid_h, ma.grid_n, ma.grid_start, ma.grid_cells)
+    missing = locate_kernel(mesh, grid, x, Location(cell, ref, status, exit_facet, w), max_steps)
     return cell, ref, status, exit_facet, int(missing)
 
 

@@ -18,40 +18,33 @@ from febed.dem.walls import MAX_WALL_CONTACTS, accept_contacts, wall_point
 
 
 @njit(cache=True, fastmath=FAST, error_model="numpy")
-def compute_forces(
-    pos,
-    vel,
-    omega,
-    diameter,
-    mass,
-    inertia,
-    n_owned,
-    n,
-    start,
-    nbr,
-    hist_in,
-    hist_out,
-    wstart,
-    wid,
-    whist_in,
-    whist_out,
-    plane_p,
-    plane_n,
-    facets,
-    nv,
-    pp,
-    pw,
-    dt_eval,
-    dt_store,
-    rotation,
-    gvec,
-    force,
-    torque,
-):
-    """Set force (N) = m g + contact forces, torque (N m) = contact torques of rows [0, n).
+def compute_forces(bodies, vel, omega, lists, hist_out, whist_out, walls, model, dt_eval, dt_store):
+    """Set force (N) = m g + contact forces, torque (N m) = contact torques of the rows of `bodies` (`Bodies`).
 
+    vel, omega: the velocities the contact forces see (the rows' own, or Verlet's predicted ones). The
+    elongations are read from `lists` (`Lists`) and written to hist_out, whist_out (the same arrays, or
+    scratch copies); `walls` is a `febed.dem.walls.WallGeometry`, `model` a `Model`. dt_eval (s): the step
+    the elongation is advanced by; dt_store (s): the step of the regularised Coulomb cap.
     Returns the largest overlap relative to the smaller diameter of its pair (a wall: the particle's).
     """
+    pos = bodies.pos
+    diameter = bodies.diameter
+    mass = bodies.mass
+    inertia = bodies.inertia
+    force = bodies.force
+    torque = bodies.torque
+    n_owned = bodies.n_owned
+    n = bodies.n
+    start = lists.start
+    nbr = lists.nbr
+    hist_in = lists.hist
+    wstart = lists.wstart
+    wid = lists.wid
+    whist_in = lists.whist
+    pp = model.pp
+    pw = model.pw
+    rotation = model.rotation
+    gvec = model.gvec
     rot = 1.0 if rotation else 0.0
     invm = np.empty(n)  # 1/m, r^2/I and 1/d once per particle instead of once per pair
     kr = np.empty(n)
@@ -155,7 +148,8 @@ def compute_forces(
     kk = np.empty(MAX_WALL_CONTACTS, dtype=np.int64)
     acc = np.empty(MAX_WALL_CONTACTS, dtype=np.bool_)
     order = np.empty(MAX_WALL_CONTACTS, dtype=np.int64)
-    npl = plane_p.shape[0]
+    plane_n = walls.plane_n
+    npl = plane_n.shape[0]
     for i in range(n_owned):
         a0 = wstart[i]
         a1 = wstart[i + 1]
@@ -168,7 +162,7 @@ def compute_forces(
         cnt = 0
         for k in range(a0, a1):
             w = wid[k]
-            qx, qy, qz, kd, sd = wall_point(xi, yi, zi, w, plane_p, plane_n, facets, nv)
+            qx, qy, qz, kd, sd = wall_point(xi, yi, zi, w, walls)
             if w < npl:
                 dist = sd
                 mx = plane_n[w, 0]
@@ -247,15 +241,24 @@ def compute_forces(
 
 
 @njit(cache=True, fastmath=FAST, error_model="numpy")
-def contact_power(pos, vel, omega, diameter, mass, n_owned, start, nbr, hist, pp, out):
+def contact_power(bodies, lists, pp, out):
     """Contact power per unit mass E_cc,i = Σ_j F_cont,ij · (v_i - v_j) / m_i (W/kg) of seed 000 eq 38.
 
-    Uses the pair list (start, nbr, hist) of the current rows and the particle-pair law `pp` (walls are not
-    particle-groups and do not count); rows [0, n_owned) are filled in `out`, ghosts add to their owners elsewhere.
+    Uses the pair list of the current rows (`Lists`) and the particle-pair law `pp` (walls are not
+    particle-groups and do not count); rows [0, n_owned) of `bodies` are filled in `out`, ghosts add to their
+    owners elsewhere.
     """
+    pos = bodies.pos
+    vel = bodies.vel
+    omega = bodies.omega
+    diameter = bodies.diameter
+    mass = bodies.mass
+    start = lists.start
+    nbr = lists.nbr
+    hist = lists.hist
     for i in range(out.shape[0]):
         out[i] = 0.0
-    for i in range(n_owned):
+    for i in range(bodies.n_owned):
         ri = 0.5 * diameter[i]
         for k in range(start[i], start[i + 1]):
             j = nbr[k]

@@ -3,8 +3,9 @@
 Each integrator advances the owned particles by up to `n_steps` steps of `dt` in one compiled loop and
 returns early (after a whole step) when the pair list must be rebuilt: when the largest displacement since
 the last build, plus the displacement the next step can make, exceeds half the skin. The caller rebuilds
-and calls again. External forces `fext` (N, per particle: drag + pressure gradient from the coupling)
-are held fixed over the steps; gravity is added in the force loop.
+and calls again. External forces `bodies.fext` (N, per particle: drag + pressure gradient from the
+coupling) are held fixed over the steps; gravity is added in the force loop. The kernels take the named
+records of `febed.dem.records` (`Bodies`, `Lists`, `Model`, `Scratch`) and a `febed.dem.walls.WallGeometry`.
 
 2D mode: z components of velocity and x, y components of angular velocity are kept at zero.
 """
@@ -21,9 +22,12 @@ from febed.schema import INTEGRATORS
 
 
 @njit(cache=True, error_model="numpy")
-def _kick(n, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2):
+def _kick(b, h, model):
     """Half kick v += h a, w += h alpha (same arithmetic as `_verlet_drift`, so a split run stays bit for bit)."""
-    for i in range(n):
+    _pos, vel, omega, force, torque, fext, _diameter, mass, inertia, n_owned, _n = b  # arrays as locals, once
+    rotation = model.rotation
+    dim2 = model.dim2
+    for i in range(n_owned):
         im = 1.0 / mass[i]
         ii = 1.0 / inertia[i] if rotation else 0.0
         for a in range(3):
@@ -36,13 +40,15 @@ def _kick(n, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2):
 
 
 @njit(cache=True, error_model="numpy")
-def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp, wp,
-                  pos_ref, half_skin):  # fmt: skip
+def _verlet_drift(b, dt, kick, model, vp, wp, pos_ref, half_skin):
     """Fused pass: v += kick a; x += dt v; predicted v^n+1 = v + dt/2 a; returns True if a particle moved too far.
 
     kick is dt/2 (first step) or dt (the last half kick of the previous step fused with this one's); the dt
     kick is taken as two half kicks so that stopping between steps (`_kick`) gives the same bits.
     """
+    pos, vel, omega, force, torque, fext, _diameter, mass, inertia, n_owned, _n = b  # arrays as locals, once
+    rotation = model.rotation
+    dim2 = model.dim2
     h = 0.5 * dt
     two = kick > h
     hs2 = half_skin * half_skin
@@ -78,8 +84,10 @@ def _verlet_drift(n_owned, dt, kick, pos, vel, omega, force, torque, fext, mass,
 
 
 @njit(cache=True, error_model="numpy")
-def _verlet_predict(n_owned, h, vel, omega, force, torque, fext, mass, inertia, rotation, vp, wp):
+def _verlet_predict(b, h, model, vp, wp):
     """Predicted velocities v + dt/2 a of the owned particles after a rebuild (as `verlet_steps` on resume)."""
+    _pos, vel, omega, force, torque, fext, _diameter, mass, inertia, n_owned, _n = b  # arrays as locals, once
+    rotation = model.rotation
     for i in range(n_owned):
         im = h / mass[i]
         ii = h / inertia[i] if rotation else 0.0
@@ -89,81 +97,67 @@ def _verlet_predict(n_owned, h, vel, omega, force, torque, fext, mass, inertia, 
 
 
 @njit(cache=True, error_model="numpy")
-def verlet_steps(
-    n_steps, dt, pos, vel, omega, force, torque, diameter, mass, inertia, n_owned, n, fext, pos_ref, half_skin,
-    start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2, resume,
-    vp, wp, x0, htmp, whtmp,
-):  # fmt: skip
+def verlet_steps(n_steps, dt, b, lists, walls, model, pos_ref, half_skin, resume, s):
     """Velocity Verlet for up to n_steps of dt (s); returns (steps completed, largest overlap / smaller diameter, code).
 
     code 0: done; 2: a particle moved more than half the skin during the drift of the next step: rebuild the
     lists and call again with resume=True (the drift is done, the force evaluation resumes).
     The kick of one step and the kick + drift of the next are fused in one pass over the particles.
     Velocity-dependent contact forces (damping, friction) use the predicted velocities v^n + dt a^n
-    (vp, wp), which keeps the damped impact second order away from the contact-start/end jumps.
+    (s.vel, s.omega), which keeps the damped impact second order away from the contact-start/end jumps.
     """
     worst = 0.0
     h = 0.5 * dt
-    for i in range(n_owned, n):  # ghosts: their velocities as given
+    vp = s.vel
+    wp = s.omega
+    for i in range(b.n_owned, b.n):  # ghosts: their velocities as given
         for a in range(3):
-            vp[i, a] = vel[i, a]
-            wp[i, a] = omega[i, a]
+            vp[i, a] = b.vel[i, a]
+            wp[i, a] = b.omega[i, a]
     if resume:
-        _verlet_predict(n_owned, h, vel, omega, force, torque, fext, mass, inertia, rotation, vp, wp)
-    elif _verlet_drift(n_owned, dt, h, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp, wp,
-                       pos_ref, half_skin):  # fmt: skip
+        _verlet_predict(b, h, model, vp, wp)
+    elif _verlet_drift(b, dt, h, model, vp, wp, pos_ref, half_skin):
         return 0, worst, 2
-    for s in range(n_steps):
-        w = compute_forces(
-            pos, vp, wp, diameter, mass, inertia, n_owned, n, start, nbr, hist, hist, wstart, wid, whist, whist,
-            plane_p, plane_n, facets, nv, pp, pw, dt, dt, rotation, gvec, force, torque,
-        )  # fmt: skip
+    for k in range(n_steps):
+        w = compute_forces(b, vp, wp, lists, lists.hist, lists.whist, walls, model, dt, dt)
         worst = max(worst, w)
-        if s + 1 == n_steps:
-            _kick(n_owned, h, vel, omega, force, torque, fext, mass, inertia, rotation, dim2)
-        elif _verlet_drift(n_owned, dt, dt, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, vp,
-                           wp, pos_ref, half_skin):  # fmt: skip
-            return s + 1, worst, 2
+        if k + 1 == n_steps:
+            _kick(b, h, model)
+        elif _verlet_drift(b, dt, dt, model, vp, wp, pos_ref, half_skin):
+            return k + 1, worst, 2
     return n_steps, worst, 0
 
 
 @njit(cache=True, error_model="numpy")
-def rk2_steps(
-    n_steps, dt, pos, vel, omega, force, torque, diameter, mass, inertia, n_owned, n, fext, pos_ref, half_skin,
-    start, nbr, hist, wstart, wid, whist, plane_p, plane_n, facets, nv, pp, pw, rotation, gvec, dim2, resume,
-    x0, v0, w0, htmp, whtmp,
-):  # fmt: skip
+def rk2_steps(n_steps, dt, b, lists, walls, model, pos_ref, half_skin, resume, s):
     """RK2 of seed 001 eqs 40-41 for up to n_steps of dt (s); returns (steps, largest overlap / smaller diameter, code).
 
     code 0: done; 1: rebuild the lists before the next step (displacement since the build plus dt |v| exceeds
-    half the skin).
+    half the skin). `resume` is not used (the signature is the integrators' common one).
     """
     worst = 0.0
     h = 0.5 * dt
-    for s in range(n_steps):
+    for k in range(n_steps):
         # forces at t^n; the tangential elongation is not advanced (dt_eval = 0), its update goes to scratch;
         # the regularised Coulomb cap uses the whole step (with dt/2 the slip would stop at the midpoint and the
         # second stage would see no friction at all)
-        compute_forces(
-            pos, vel, omega, diameter, mass, inertia, n_owned, n, start, nbr, hist, htmp, wstart, wid, whist, whtmp,
-            plane_p, plane_n, facets, nv, pp, pw, 0.0, dt, rotation, gvec, force, torque,
-        )  # fmt: skip
-        _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0)
-        w = compute_forces(
-            pos, vel, omega, diameter, mass, inertia, n_owned, n, start, nbr, hist, hist, wstart, wid, whist, whist,
-            plane_p, plane_n, facets, nv, pp, pw, h, dt, rotation, gvec, force, torque,
-        )  # fmt: skip
+        compute_forces(b, b.vel, b.omega, lists, s.hist, s.whist, walls, model, 0.0, dt)
+        _rk2_half(b, h, model, s)
+        w = compute_forces(b, b.vel, b.omega, lists, lists.hist, lists.whist, walls, model, h, dt)
         worst = max(worst, w)
-        far = _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0,
-                        pos_ref)  # fmt: skip
+        far = _rk2_full(b, dt, model, s, pos_ref)
         if far > half_skin:
-            return s + 1, worst, 1
+            return k + 1, worst, 1
     return n_steps, worst, 0
 
 
 @njit(cache=True, error_model="numpy")
-def _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0):
-    """Save the state and take the half step of seed 001 eq 40."""
+def _rk2_half(b, h, model, s):
+    """Save the state in `s` (Scratch) and take the half step of seed 001 eq 40."""
+    pos, vel, omega, force, torque, fext, _diameter, mass, inertia, n_owned, _n = b  # arrays as locals, once
+    x0, v0, w0, _h, _wh = s
+    rotation = model.rotation
+    dim2 = model.dim2
     for i in range(n_owned):
         im = h / mass[i]
         ii = h / inertia[i] if rotation else 0.0
@@ -181,8 +175,12 @@ def _rk2_half(n_owned, h, pos, vel, omega, force, torque, fext, mass, inertia, r
 
 
 @njit(cache=True, error_model="numpy")
-def _rk2_full(n_owned, dt, pos, vel, omega, force, torque, fext, mass, inertia, rotation, dim2, x0, v0, w0, pos_ref):
-    """Full step of seed 001 eq 41 from the saved state; returns max |x - x_ref| + dt |v| (m; inf if NaN)."""
+def _rk2_full(b, dt, model, s, pos_ref):
+    """Full step of seed 001 eq 41 from the state saved in `s`; returns max |x - x_ref| + dt |v| (m; inf if NaN)."""
+    pos, vel, omega, force, torque, fext, _diameter, mass, inertia, n_owned, _n = b  # arrays as locals, once
+    x0, v0, w0, _h, _wh = s
+    rotation = model.rotation
+    dim2 = model.dim2
     worst = 0.0
     for i in range(n_owned):
         im = dt / mass[i]
@@ -216,33 +214,25 @@ def rk2_staged(dem, n_steps: int, dt: float) -> float:
     reduction over the ranks (two synchronisations per step).
     """
     ex = dem.exchange
-    p = dem.params
-    dim2 = p.dim == 2
+    rotation = dem.params.rotation
     h = 0.5 * dt
     worst = 0.0
-    P, W, pl, (x0, v0, w0, htmp, whtmp) = dem.kernel_args()
-    ex.update_ghosts(P, P.vel, P.omega, spin=p.rotation)
+    P = dem.particles
+    b, lists, walls, model, s = dem.kernel_args()
+    ex.update_ghosts(P, P.vel, P.omega, spin=rotation)
     for _ in range(n_steps):
-        fx = P.aux("_fext")
-        compute_forces(
-            P.pos, P.vel, P.omega, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, htmp,
-            dem.wstart, dem.wid, dem.whist, whtmp, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw, 0.0, dt,
-            p.rotation, dem.gvec, P.force, P.torque,
-        )  # fmt: skip
-        _rk2_half(P.n_owned, h, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation, dim2, x0,
-                  v0, w0)  # fmt: skip
-        ex.update_ghosts(P, P.vel, P.omega, spin=p.rotation)
-        w = compute_forces(
-            P.pos, P.vel, P.omega, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, pl.hist,
-            dem.wstart, dem.wid, dem.whist, dem.whist, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw, h, dt,
-            p.rotation, dem.gvec, P.force, P.torque,
-        )  # fmt: skip
+        compute_forces(b, b.vel, b.omega, lists, s.hist, s.whist, walls, model, 0.0, dt)
+        _rk2_half(b, h, model, s)
+        ex.update_ghosts(P, P.vel, P.omega, spin=rotation)
+        w = compute_forces(b, b.vel, b.omega, lists, lists.hist, lists.whist, walls, model, h, dt)
         worst = max(worst, w)
-        far = _rk2_full(P.n_owned, dt, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation,
-                        dim2, x0, v0, w0, dem.pos_ref)  # fmt: skip
-        if ex.update_ghosts(P, P.vel, P.omega, far, p.rotation) > 0.5 * pl.skin:  # ghosts ready for the next step ...
+        far = _rk2_full(b, dt, model, s, dem.pos_ref)
+        if (
+            ex.update_ghosts(P, P.vel, P.omega, far, rotation) > 0.5 * dem.pairs.skin
+        ):  # ghosts ready for the next step ...
             dem.rebuild()  # ... unless the lists must be rebuilt (which refreshes them)
-            P, W, pl, (x0, v0, w0, htmp, whtmp) = dem.kernel_args()
+            P = dem.particles
+            b, lists, walls, model, s = dem.kernel_args()
     return worst
 
 
@@ -253,34 +243,29 @@ def verlet_staged(dem, n_steps: int, dt: float) -> float:
     criterion's reduction over the ranks (one synchronisation per step).
     """
     ex = dem.exchange
-    p = dem.params
-    dim2 = p.dim == 2
+    rotation = dem.params.rotation
     h = 0.5 * dt
     worst = 0.0
-    P, W, pl, (vp, wp, _, _, _) = dem.kernel_args()
-    far = _verlet_drift(P.n_owned, dt, h, P.pos, P.vel, P.omega, P.force, P.torque, P.aux("_fext"), P.mass,
-                        P.inertia, p.rotation, dim2, vp, wp, dem.pos_ref, 0.5 * pl.skin)  # fmt: skip
-    resume = ex.update_ghosts(P, vp, wp, float(far), p.rotation) > 0.0
-    for s in range(n_steps):
+    P = dem.particles
+    b, lists, walls, model, s = dem.kernel_args()
+    half_skin = 0.5 * dem.pairs.skin
+    far = _verlet_drift(b, dt, h, model, s.vel, s.omega, dem.pos_ref, half_skin)
+    resume = ex.update_ghosts(P, s.vel, s.omega, float(far), rotation) > 0.0
+    for k in range(n_steps):
         if resume:
             dem.rebuild()
-            P, W, pl, (vp, wp, _, _, _) = dem.kernel_args()
-            _verlet_predict(P.n_owned, h, P.vel, P.omega, P.force, P.torque, P.aux("_fext"), P.mass, P.inertia,
-                            p.rotation, vp, wp)  # fmt: skip
-            ex.update_ghosts(P, vp, wp, spin=p.rotation)
-        fx = P.aux("_fext")
-        w = compute_forces(
-            P.pos, vp, wp, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, pl.hist,
-            dem.wstart, dem.wid, dem.whist, dem.whist, W.plane_p, W.plane_n, W.facets, W.nv, dem.pp, dem.pw, dt, dt,
-            p.rotation, dem.gvec, P.force, P.torque,
-        )  # fmt: skip
+            P = dem.particles
+            b, lists, walls, model, s = dem.kernel_args()
+            half_skin = 0.5 * dem.pairs.skin
+            _verlet_predict(b, h, model, s.vel, s.omega)
+            ex.update_ghosts(P, s.vel, s.omega, spin=rotation)
+        w = compute_forces(b, s.vel, s.omega, lists, lists.hist, lists.whist, walls, model, dt, dt)
         worst = max(worst, w)
-        if s + 1 == n_steps:
-            _kick(P.n_owned, h, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia, p.rotation, dim2)
+        if k + 1 == n_steps:
+            _kick(b, h, model)
         else:
-            far = _verlet_drift(P.n_owned, dt, dt, P.pos, P.vel, P.omega, P.force, P.torque, fx, P.mass, P.inertia,
-                                p.rotation, dim2, vp, wp, dem.pos_ref, 0.5 * pl.skin)  # fmt: skip
-            resume = ex.update_ghosts(P, vp, wp, float(far), p.rotation) > 0.0
+            far = _verlet_drift(b, dt, dt, model, s.vel, s.omega, dem.pos_ref, half_skin)
+            resume = ex.update_ghosts(P, s.vel, s.omega, float(far), rotation) > 0.0
     return worst
 
 

@@ -38,6 +38,7 @@ from febed.dem.neighbours import (
     wall_keys,
 )
 from febed.dem.particles import Particles
+from febed.dem.records import Bodies, Lists, Model, Scratch
 from febed.dem.walls import Walls, build_wall_pairs, wall_overlap_squares
 from febed.schema import check_fields, schema_field
 
@@ -400,8 +401,7 @@ class DEM:
         rmax = 0.5 * float(P.diameter.max()) if n else 0.0
         W.prepare(rmax + skin)
         self.wstart = np.zeros(n + 1, dtype=np.int64)
-        args = (P.pos, 0.5 * P.diameter, n, skin, W.plane_p, W.plane_n, W.facets, W.nv, W.glo, W.gsize, W.gdims,
-                W.gstart, W.gitems, self.wstart)  # fmt: skip
+        args = (P.pos, 0.5 * P.diameter, n, skin, W.geometry, W.grid, self.wstart)
         wid = np.zeros(max(64, self.wid.size), dtype=np.int64)
         need = build_wall_pairs(*args, wid)
         if need > wid.size:
@@ -416,14 +416,9 @@ class DEM:
         """Evaluate force and torque of every particle now (history kept); returns the largest relative overlap."""
         if self._dirty:
             self.rebuild()
-        P = self.particles
-        W = self.walls
-        pl = self.pairs
-        w = compute_forces(
-            P.pos, P.vel, P.omega, P.diameter, P.mass, P.inertia, P.n_owned, P.n, pl.start, pl.nbr, pl.hist, pl.hist,
-            self.wstart, self.wid, self.whist, self.whist, W.plane_p, W.plane_n, W.facets, W.nv, self.pp, self.pw,
-            dt_eval, dt_store, self.params.rotation, self.gvec, P.force, P.torque,
-        )  # fmt: skip
+        b, lists = self.bodies(), self.lists()
+        w = compute_forces(b, b.vel, b.omega, lists, lists.hist, lists.whist, self.walls.geometry, self.model(),
+                           dt_eval, dt_store)  # fmt: skip
         self._forces_valid = True
         return w
 
@@ -491,17 +486,10 @@ class DEM:
         raise StopRequested(f"stopped after {done} DEM steps, at t = {self.time:.6g} s")
 
     def _run(self, n_steps: int, dt: float, resume: bool):
-        P = self.particles
-        W = self.walls
-        pl = self.pairs
-        p = self.params
-        args = (
-            n_steps, dt, P.pos, P.vel, P.omega, P.force, P.torque, P.diameter, P.mass, P.inertia, P.n_owned, P.n,
-            P.aux("_fext"), self.pos_ref, 0.5 * pl.skin, pl.start, pl.nbr, pl.hist, self.wstart, self.wid, self.whist,
-            W.plane_p, W.plane_n, W.facets, W.nv, self.pp, self.pw, p.rotation, self.gvec, p.dim == 2, resume,
-        )  # fmt: skip
-        s = self._scratch(P.n, pl.hist.shape[0], self.whist.shape[0])
-        return self.integrator.steps(*args, *s)
+        b, lists, walls, model, s = self.kernel_args()
+        return self.integrator.steps(
+            n_steps, dt, b, lists, walls, model, self.pos_ref, 0.5 * self.pairs.skin, resume, s
+        )
 
     def _advance_parallel(self, n_steps: int, dt: float, f_ext) -> None:
         """`advance` with ghosts: the same kernels as the serial loop, split at each force evaluation (collective)."""
@@ -532,18 +520,30 @@ class DEM:
         self.time += n_steps * dt
         self.steps += n_steps
 
-    def kernel_args(self):
-        """Particles, walls, pair list and scratch arrays for the current rows (refetch after a rebuild)."""
+    def bodies(self) -> Bodies:
+        """The current rows as the kernels take them (`febed.dem.records.Bodies`; refetch after a rebuild)."""
         P = self.particles
-        pl = self.pairs
-        return P, self.walls, pl, self._scratch(P.n, pl.hist.shape[0], self.whist.shape[0])
+        return Bodies(P.pos, P.vel, P.omega, P.force, P.torque, P.attach("_fext", 3), P.diameter, P.mass, P.inertia,
+                      P.n_owned, P.n)  # fmt: skip
 
-    def _scratch(self, n: int, npairs: int, nwall: int):
-        s = getattr(self, "_rk2_scratch", None)
-        if s is None or s[0].shape[0] < n or s[3].shape[0] < npairs or s[4].shape[0] < nwall:
-            s = (np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((npairs, 3)), np.zeros((nwall, 3)))
-            self._rk2_scratch = s
-        return s
+    def lists(self) -> Lists:
+        """The pair and wall lists of the current rows with their histories (`febed.dem.records.Lists`)."""
+        pl = self.pairs
+        return Lists(pl.start, pl.nbr, pl.hist, self.wstart, self.wid, self.whist)
+
+    def model(self) -> Model:
+        """The contact laws, rotation, gravity and 2D flag (`febed.dem.records.Model`)."""
+        p = self.params
+        return Model(self.pp, self.pw, bool(p.rotation), self.gvec, p.dim == 2)
+
+    def kernel_args(self) -> tuple[Bodies, Lists, object, Model, Scratch]:
+        """(bodies, lists, wall geometry, model, scratch) for the current rows (refetch after a rebuild)."""
+        lists = self.lists()
+        s = getattr(self, "_scratch", None)
+        n, pairs, wall_pairs = self.particles.n, lists.hist.shape[0], lists.whist.shape[0]
+        if s is None or not s.fits(n, pairs, wall_pairs):
+            s = self._scratch = Scratch.sized(n, pairs, wall_pairs)
+        return self.bodies(), lists, self.walls.geometry, self.model(), s
 
     # ------------------------------------------------------------------ checkpoint
     def get_state(self) -> dict:
@@ -698,7 +698,7 @@ class DEM:
         if W.count:  # the nearest wall among each particle's candidates (the wall lists are current)
             m_ref = getattr(self.pw, "m_ref", None)
             scale = None if m_ref is None else (P.mass[:n] / m_ref) ** (2.0 / 3.0)
-            sq = wall_overlap_squares(P.pos, r, n, self.wstart, self.wid, W.plane_p, W.plane_n, W.facets, W.nv,
+            sq = wall_overlap_squares(P.pos, r, n, self.wstart, self.wid, W.geometry,
                                       np.ones(n) if scale is None else scale)  # fmt: skip
             e += 0.5 * self.pw.stiffness * sq
         return self.global_sum(e)

@@ -25,12 +25,32 @@ facets' bounding boxes, so facet walls cost O(particles near walls).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 FACE, EDGE, VERTEX = 0, 1, 2
 MAX_WALL_CONTACTS = 16
+
+
+class WallGeometry(NamedTuple):
+    """The walls as the Numba kernels take them: wall w is plane w if w < len(plane_p), else facet w - len(plane_p)."""
+
+    plane_p: np.ndarray  # (n_planes, 3) m: a point of each plane
+    plane_n: np.ndarray  # (n_planes, 3): each plane's unit normal, into the domain
+    facets: np.ndarray  # (n_facets, nv, 3) m: segments (nv = 2, 2D) or triangles (nv = 3)
+    nv: int  # vertices per facet
+
+
+class FacetGrid(NamedTuple):
+    """A uniform grid over the facets' bounding boxes: cell c lists facets items[start[c]:start[c + 1]]."""
+
+    lo: np.ndarray  # (3,) m: the grid's lower corner
+    size: float  # m: the cells' edge
+    dims: np.ndarray  # (3,) int: cells along each axis
+    start: np.ndarray  # (cells + 1,) int: CSR offsets
+    items: np.ndarray  # int: facet indices
 
 
 @njit(cache=True, inline="always")
@@ -92,33 +112,43 @@ def closest_on_facet(px, py, pz, f, nv):
 
 
 @njit(cache=True, inline="always")
-def wall_point(px, py, pz, w, plane_p, plane_n, facets, nv):
-    """Closest point of wall w (planes first, then facets), its kind, and the plane's signed distance (or -1)."""
+def wall_point(px, py, pz, w, walls):
+    """Closest point of wall w of `walls` (a WallGeometry), its kind, and the plane's signed distance (or -1)."""
+    plane_p = walls.plane_p
+    plane_n = walls.plane_n
     npl = plane_p.shape[0]
     if w < npl:
         d = (px - plane_p[w, 0]) * plane_n[w, 0] + (py - plane_p[w, 1]) * plane_n[w, 1]
         d += (pz - plane_p[w, 2]) * plane_n[w, 2]
         return px - d * plane_n[w, 0], py - d * plane_n[w, 1], pz - d * plane_n[w, 2], FACE, d
-    qx, qy, qz, kind = closest_on_facet(px, py, pz, facets[w - npl], nv)
+    qx, qy, qz, kind = closest_on_facet(px, py, pz, walls.facets[w - npl], walls.nv)
     return qx, qy, qz, kind, -1.0
 
 
 @njit(cache=True)
-def wall_distance(px, py, pz, w, plane_p, plane_n, facets, nv):
-    """Distance (m) from p to wall w: signed for planes (negative behind), unsigned for facets."""
-    qx, qy, qz, kind, d = wall_point(px, py, pz, w, plane_p, plane_n, facets, nv)
-    if w < plane_p.shape[0]:
+def wall_distance(px, py, pz, w, walls):
+    """Distance (m) from p to wall w of `walls` (a WallGeometry): signed for planes (negative behind), else unsigned."""
+    qx, qy, qz, kind, d = wall_point(px, py, pz, w, walls)
+    if w < walls.plane_p.shape[0]:
         return d
     return math.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
 
 
 @njit(cache=True)
-def build_wall_pairs(
-    pos, radius, n, skin, plane_p, plane_n, facets, nv, glo, gsize, gdims, gstart, gitems, wstart, wid
-):
-    """CSR list (wstart, wid) of walls within r + skin of each particle; returns the entries needed."""
+def build_wall_pairs(pos, radius, n, skin, walls, grid, wstart, wid):
+    """CSR list (wstart, wid) of the walls (WallGeometry, its FacetGrid) within r + skin of each particle.
+
+    Returns the entries needed (more than wid.size: call again with a larger wid).
+    """
     cap = wid.size
+    plane_p = walls.plane_p
+    plane_n = walls.plane_n
     npl = plane_p.shape[0]
+    glo = grid.lo
+    gsize = grid.size
+    gdims = grid.dims
+    gstart = grid.start
+    gitems = grid.items
     k = 0
     for i in range(n):
         wstart[i] = k
@@ -143,7 +173,7 @@ def build_wall_pairs(
             if inside:
                 for q in range(gstart[c], gstart[c + 1]):
                     w = npl + gitems[q]
-                    if wall_distance(px, py, pz, w, plane_p, plane_n, facets, nv) < reach:
+                    if wall_distance(px, py, pz, w, walls) < reach:
                         if k < cap:
                             wid[k] = w
                         k += 1
@@ -255,6 +285,16 @@ class Walls:
         self.gstart = np.zeros(1, dtype=np.int64)
         self.gitems = np.zeros(0, dtype=np.int64)
 
+    @property
+    def geometry(self) -> WallGeometry:
+        """The planes and facets as the kernels take them."""
+        return WallGeometry(self.plane_p, self.plane_n, self.facets, self.nv)
+
+    @property
+    def grid(self) -> FacetGrid:
+        """The facet grid of the last `prepare` (empty before)."""
+        return FacetGrid(self.glo, self.gsize, self.gdims, self.gstart, self.gitems)
+
     @classmethod
     def from_facets(cls, facets, box=None, rtol: float = 1e-9) -> Walls:
         """Facet walls, with the faces of the domain's bounding box `box` = (lo, hi) (m) made planes.
@@ -329,29 +369,28 @@ class Walls:
     def distance(self, pos: np.ndarray) -> np.ndarray:
         """Distance (m) of each point (k, 3) to the nearest wall (planes signed), by brute force (for checks)."""
         out = np.full(pos.shape[0], np.inf)
-        _nearest_walls(np.ascontiguousarray(pos, dtype=np.float64), self.count, self.plane_p, self.plane_n,
-                       self.facets, self.nv, out)  # fmt: skip
+        _nearest_walls(np.ascontiguousarray(pos, dtype=np.float64), self.count, self.geometry, out)
         return out
 
 
 @njit(cache=True)
-def _nearest_walls(pos, count, plane_p, plane_n, facets, nv, out):
+def _nearest_walls(pos, count, walls, out):
     """out[i] = distance of point i to the nearest of all `count` walls (brute force)."""
     for i in range(pos.shape[0]):
         for w in range(count):
-            d = wall_distance(pos[i, 0], pos[i, 1], pos[i, 2], w, plane_p, plane_n, facets, nv)
+            d = wall_distance(pos[i, 0], pos[i, 1], pos[i, 2], w, walls)
             if d < out[i]:
                 out[i] = d
 
 
 @njit(cache=True)
-def wall_overlap_squares(pos, radius, n, wstart, wid, plane_p, plane_n, facets, nv, weight):
+def wall_overlap_squares(pos, radius, n, wstart, wid, walls, weight):
     """Σ_i weight_i max(r_i − distance to the nearest candidate wall, 0)² over the rows' wall candidate lists (m²)."""
     total = 0.0
     for i in range(n):
         best = np.inf
         for k in range(wstart[i], wstart[i + 1]):
-            d = wall_distance(pos[i, 0], pos[i, 1], pos[i, 2], wid[k], plane_p, plane_n, facets, nv)
+            d = wall_distance(pos[i, 0], pos[i, 1], pos[i, 2], wid[k], walls)
             if d < best:
                 best = d
         if radius[i] > best:
@@ -375,8 +414,7 @@ def touching(walls: Walls, pos: np.ndarray, radius: np.ndarray) -> np.ndarray:
     walls.prepare(float(np.max(radius)) if n else 0.0)
     wstart = np.zeros(n + 1, dtype=np.int64)
     wid = np.zeros(max(16, n), dtype=np.int64)
-    args = (pos, radius, n, 0.0, walls.plane_p, walls.plane_n, walls.facets, walls.nv, walls.glo, walls.gsize,
-            walls.gdims, walls.gstart, walls.gitems, wstart)  # fmt: skip
+    args = (pos, radius, n, 0.0, walls.geometry, walls.grid, wstart)
     need = build_wall_pairs(*args, wid)
     if need > wid.size:
         wid = np.zeros(need, dtype=np.int64)

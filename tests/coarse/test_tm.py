@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from febed.coarse.tm import check_ratio, tm_contact_params, tm_contact_time, tm_dem_params, tm_parcels
-from febed.coupling.drag import drag_forces, gas_forces_kernel, get_drag_law
+from febed.coupling.drag import AtParticles, GasForces, NodalGas, drag_forces, gas_forces_kernel, get_drag_law
 from febed.dem import DEM, DEMParams
 from febed.dem.contact import linear, linear_history
 
@@ -155,10 +155,11 @@ def test_parcel_drag_is_n_orig_times_original(name):
         w = np.full((1, 3), 1 / 3)
         vv = v[p : p + 1].copy()
         vv[0, 2] = 0.0
-        args = (np.arange(3).reshape(1, 3), np.zeros(1, np.int32), w, un, np.full(3, eps[p]), np.zeros((3, 2)), vv)
+        at = AtParticles(np.arange(3).reshape(1, 3), np.zeros(1, np.int32), w, vv, d_orig[p : p + 1], n_orig[p : p + 1])
         k = np.empty(1)
         f = np.empty((1, 3))
-        gas_forces_kernel(law, *args, d_orig[p : p + 1], n_orig[p : p + 1], 1.2, 1.8e-5, True, k, f, Fp, ep)
+        gas = NodalGas(un, np.full(3, eps[p]), np.zeros((3, 2)), 1.2, 1.8e-5, True)
+        gas_forces_kernel(law, at, gas, GasForces.of(k, f, Fp, ep))
         slip = np.linalg.norm(np.r_[u[p, :2], 0.0] - vv[0])
         assert k[0] == pytest.approx(n_orig[p] * law(eps[p], slip, 5e-4, 1.2, 1.8e-5), rel=1e-12)
         assert np.allclose(f[0], k[0] * (np.r_[u[p, :2], 0.0] - vv[0]), rtol=1e-13)

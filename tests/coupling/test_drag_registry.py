@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from test_drag import HAND, MU_G, RHO_G
 
-from febed.coupling.drag import DragLaw, drag_forces, gas_forces_kernel, get_drag_law
+from febed.coupling.drag import AtParticles, DragLaw, GasForces, NodalGas, drag_forces, gas_forces_kernel, get_drag_law
 from febed.schema import DRAG_LAWS, param
 
 D = 1.0e-3
@@ -48,10 +48,9 @@ def test_every_registered_law_reached_by_name_matches_its_formula(name):
     u_nodes = np.repeat(u, 4, axis=0)
     eps_nodes = np.repeat(eps, 4)
     K2, F_d, F_p, eps_p = np.empty(n), np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
-    gas_forces_kernel(
-        law, cell_dofs, np.arange(n, dtype=np.int32), w, u_nodes, eps_nodes, np.zeros((4 * n, 3)), v, d,
-        np.ones(n), RHO_G, MU_G, True, K2, F_d, F_p, eps_p,
-    )  # fmt: skip
+    at = AtParticles(cell_dofs, np.arange(n, dtype=np.int32), w, v, d, np.ones(n))
+    gas = NodalGas(u_nodes, eps_nodes, np.zeros((4 * n, 3)), RHO_G, MU_G, True)
+    gas_forces_kernel(law, at, gas, GasForces.of(K2, F_d, F_p, eps_p))
     np.testing.assert_allclose(K2, K, rtol=1e-14)
 
 
