@@ -2,8 +2,9 @@
 
 The arrays of the gas and DEM states are `febed.io.state`'s. A pure-DEM run (`febed.runs.dem.DEMRun`)
 checkpoints the particle part (`dem_arrays`, `load_dem`) with its particle-output schedule, a gas-only run
-(`febed.runs.gas.GasRun`) the gas part (`gas_arrays`, `restore_gas`) with its field-output schedule; every
-checkpoint records its run mode and continues only that mode.
+(`febed.runs.gas.GasRun`) the gas part (`gas_arrays`, `restore_gas`) with its field-output schedule, a one-way
+run (`febed.runs.oneway.OneWayRun`) the particle part with its driver's counters and particle-output schedule;
+every checkpoint records its run mode and continues only that mode.
 
 The state of a coupled run (`capture`: `CoupledSolver.get_state` and the run's schedule) is
 
@@ -42,7 +43,7 @@ from febed.io.checkpoint import CheckpointError
 from febed.io.rundir import RESOLVED_CASE
 from febed.schema import BOUNDARY, CHANGEABLE, SCHEMA, flatten_keys, physics_digest
 
-RESTARTABLE = ("cfd-dem", "dem", "gas")  # [run] modes whose runs write checkpoints and continue from them
+RESTARTABLE = ("cfd-dem", "dem", "gas", "one-way")  # [run] modes whose runs write checkpoints and continue from them
 
 
 # ------------------------------------------------------------------------------------------ case changes

@@ -251,8 +251,8 @@ def member_state(m: Member) -> str:
 def resume_flags(m: Member, state: str) -> tuple[bool, bool]:
     """(restart, overwrite) for a member in `state` (`febed run --restart` / `--overwrite`).
 
-    An unfinished run of a mode without checkpoints (not in `febed.restart.RESTARTABLE`, e.g. one-way) starts
-    again from scratch.
+    An unfinished run of a mode without checkpoints (not in `febed.restart.RESTARTABLE`) starts again from
+    scratch.
     """
     from febed.restart import RESTARTABLE  # loads mpi4py (MPI starts)
 

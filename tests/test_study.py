@@ -172,12 +172,17 @@ def test_a_member_still_running_elsewhere_is_skipped(study_file):
     assert member_state(m) == "running"  # its process is gone: resumed by the next study run
 
 
-def test_an_unfinished_run_without_checkpoints_starts_again(study_file, capsys):
+def test_an_unfinished_run_without_checkpoints_starts_again(study_file, capsys, monkeypatch):
+    from febed import restart
+
     s = load_study(study_file())
     m = s.members[0]
     m.directory.mkdir(parents=True)
     (m.directory / "case.resolved.toml").write_text(BASE.replace('mode = "dem"', 'mode = "one-way"'))
     (m.directory / "status.json").write_text('{"state": "interrupted", "time": 0.005, "end_time": 0.01}')
+    cmd = shlex.split(job_lines(s)[0])
+    assert "--restart" in cmd and "--overwrite" not in cmd  # every mode writes checkpoints: it continues
+    monkeypatch.setattr(restart, "RESTARTABLE", ("cfd-dem", "dem", "gas"))  # a mode that could not continue
     cmd = shlex.split(job_lines(s)[0])
     assert "--overwrite" in cmd and "--restart" not in cmd
     assert post_main(["study", str(s.path), "--list"]) == 0  # --list shows the same command lines

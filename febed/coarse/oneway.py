@@ -99,19 +99,35 @@ class OneWay:
                 self.removed += int(gone.sum())
                 dem.remove_particles(gone)
 
+    def window(self, t_end: float, h: float | None = None) -> float:
+        """The next drag window (s): h (default min(τ_min / drag_factor, DEM dt)), ending at t_end at the latest.
+
+        With no particles the window reaches t_end (nothing happens; pass h when a callback feeds particles).
+        """
+        if h is None:
+            n = self.dem.particles.n_owned
+            h = min(self.relaxation_time() / self.drag_factor, self.dem.dt) if n else t_end - self.t
+        return min(h, t_end - self.t)
+
     def advance(self, t_end: float, h: float | None = None, callback: Callable | None = None) -> None:
         """Advance to time t_end (s) in drag windows of h (default min(τ_min / drag_factor, DEM dt))."""
         while self.t < t_end * (1.0 - 1e-12):
-            if h is not None:
-                hh = h
-            elif self.dem.particles.n_owned:
-                hh = min(self.relaxation_time() / self.drag_factor, self.dem.dt)
-            else:
-                hh = t_end - self.t  # no particles: nothing happens (pass h when a callback feeds particles)
-            hh = min(hh, t_end - self.t)
-            self.step(hh)
+            self.step(self.window(t_end, h))
             if callback is not None:
                 callback(self)
+
+    def get_state(self) -> dict:
+        """The driver's own state beyond the DEM's (JSON-able): its time (s), drag windows made, particles removed.
+
+        The drag is evaluated afresh at the start of each window, so between windows this and the DEM's state
+        (`DEM.get_state`) are the whole state: `set_state` on a new `OneWay` over the restored DEM continues bit
+        for bit.
+        """
+        return {"t": self.t, "windows": self.windows, "removed": self.removed}
+
+    def set_state(self, state: dict) -> None:
+        """Take back a state of `get_state` (the DEM's own state is restored by the DEM)."""
+        self.t, self.windows, self.removed = float(state["t"]), int(state["windows"]), int(state["removed"])
 
 
 @dataclass

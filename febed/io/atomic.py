@@ -109,6 +109,15 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, sync: bool = True, 
         f.write(text)
 
 
+def sync_close(f: IO) -> None:
+    """Flush the open file `f` to the disk and close it (closed even if the flush fails)."""
+    try:
+        f.flush()
+        os.fsync(f.fileno())
+    finally:
+        f.close()
+
+
 def remove_temporaries(folder: str | os.PathLike, name_glob: str = "*", suffix: str = TMP_SUFFIX) -> list[Path]:
     """Remove the temporary files of writes into `folder` that never finished (a process killed while writing).
 

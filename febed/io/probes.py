@@ -16,7 +16,7 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from febed.io.atomic import atomic_open
+from febed.io.atomic import atomic_open, sync_close
 
 
 class ProbeFile:
@@ -73,11 +73,7 @@ class ProbeFile:
         """Flush to disk and close; a second call does nothing, even after a failed close (OSError)."""
         f, self._f = self._f, None
         if f is not None:
-            try:
-                f.flush()
-                os.fsync(f.fileno())
-            finally:
-                f.close()
+            sync_close(f)
 
 
 def read_probes(path: str | os.PathLike) -> dict[str, list[float]]:

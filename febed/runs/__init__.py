@@ -4,7 +4,7 @@ One module per `[run] mode`, each with `run(case, outdir, log, ...)` called by `
 
     febed.runs.dem       "dem": a pure-DEM run (`DEMRun`)
     febed.runs.gas       "gas": a gas-only run with a prescribed void fraction (`GasRun`)
-    febed.runs.oneway    "one-way": particles in a prescribed gas (`run_oneway`)
+    febed.runs.oneway    "one-way": particles in a prescribed gas (`OneWayRun`)
     febed.run            "cfd-dem": the coupled run (`CoupledRun`, `run_coupled`)
 
 `febed.runs.lifecycle` holds what they share: stop signals, checkpoints at the end, failures and output errors,

@@ -157,7 +157,7 @@ def checkpoint_or_fail(write, *args):
 
 
 class RunMode:
-    """What every run mode (coupled, DEM, gas) does the same way: its checkpoints and its `status.json`.
+    """What every run mode (coupled, DEM, gas, one-way) does the same way: its checkpoints and its `status.json`.
 
     A mode sets `case`, `outdir`, `log` and `comm`, and gives `capture()` -> (arrays, meta) of its state (the
     `febed.restart` format), `sim_time()` (s) and `steps_done()` at its own clock, `STEP` (what a step is called
@@ -249,7 +249,7 @@ def newest_checkpoint(outdir) -> str:
 
 # ------------------------------------------------------------------------------------ the end of a run
 def after_step(run, t: float, checkpoint_due: bool) -> bool:
-    """The end of a step of any run (coupled, pure DEM, gas only): returns whether a progress line is due.
+    """The end of a step of any run (coupled, pure DEM, gas only, one-way): returns whether a progress line is due.
 
     Agrees with the other ranks on a stop signal and on the wall-clock triggers (`agree`: rank 0's clock), writes
     a checkpoint when one is due (a signal, `[output] checkpoint_wall_interval`, or `checkpoint_due`: the
@@ -277,7 +277,7 @@ def after_step(run, t: float, checkpoint_due: bool) -> bool:
 
 
 def run_to_end(run, end: float) -> None:
-    """Advance `run` (coupled, pure DEM or gas only) to `end`, then write the final checkpoint and status.
+    """Advance `run` (coupled, pure DEM, gas only or one-way) to `end`, then write the final checkpoint and status.
 
     The stop signals are caught meanwhile (`catch_signals`). However the run ends, its files are closed and
     the handlers restored; an error closing them after another error is logged and does not hide the first.
