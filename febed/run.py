@@ -62,7 +62,6 @@ from febed.runs.lifecycle import (
     close_after_error,
     close_files,
     guarded_write,
-    record_failure,
     record_internal_error,
     run_to_end,
     stopped_mid_step,
@@ -335,16 +334,11 @@ class CoupledRun(RunMode):
         self.next["checkpoint"] = self.solver.t + self.case.output.checkpoint_interval
 
     # ---------------------------------------------------------------------------------------- loop
-    def progress(self, end: float) -> None:
-        """Show the progress line (collective under MPI: call it on every rank, `after_step` says when)."""
-        now = time.perf_counter()
-        self._last_progress = now
+    def progress_text(self, end: float, now: float) -> str:
+        """Simulated time, gas step, particles, DEM sub-steps per gas step (collective under MPI)."""
         s = self.solver
         n = self.comm.allreduce(s.dem.particles.n_owned)
-        self.display.show(
-            f"t = {s.t:.5f} / {end:g} s  step {s.steps}  {n} particles  {s.n_sub} sub-steps/step  "
-            f"{self._meter.text(s.t, end, now)}"
-        )
+        return f"t = {s.t:.5f} / {end:g} s  step {s.steps}  {n} particles  {s.n_sub} sub-steps/step"
 
     def advance_to(self, end: float) -> None:
         """Step until `end` (s), writing output, checkpoints and progress on the way.
@@ -389,10 +383,6 @@ class CoupledRun(RunMode):
                 self.progress(end)
         self.progress(end)
         self.display.end()
-
-    def fail(self, error: RunFailure, collective: bool = True) -> None:
-        """Record a failure: write the last good state as a checkpoint (if `collective`) and the status."""
-        record_failure(self, error, collective)
 
     def close(self, last_output: bool = True) -> None:
         """Write the last output (if `last_output`) and close the files; a second call does nothing.

@@ -37,7 +37,6 @@ from febed.runs.lifecycle import (
     after_step,
     catch_stop_signals,
     guarded_write,
-    record_failure,
     run_to_end,
 )
 
@@ -166,19 +165,11 @@ class DEMRun(RunMode):
         self.progress(end)
         self.display.end()
 
-    def progress(self, end: float) -> None:
-        """The progress line: simulated time, steps, particles, particles left, wall time rate, ETA (collective)."""
-        now = time.perf_counter()
-        self._last_progress = now
+    def progress_text(self, end: float, now: float) -> str:
+        """Simulated time, steps, particles, particles left (collective)."""
         dem = self.dem
-        self.display.show(
-            f"t = {dem.time:.5f} / {end:g} s  step {dem.steps}  {dem.count()} particles  "
-            f"{self.comm.allreduce(self.left)} left  {self._meter.text(dem.time, end, now)}"
-        )
-
-    def fail(self, message: str) -> None:
-        """Record a failure: write the last good state as a checkpoint and the status (collective)."""
-        record_failure(self, message)
+        left = self.comm.allreduce(self.left)
+        return f"t = {dem.time:.5f} / {end:g} s  step {dem.steps}  {dem.count()} particles  {left} left"
 
     def close(self, last_output: bool = True) -> None:
         """Nothing to close: every particle output is a complete file of its own."""

@@ -41,7 +41,6 @@ from febed.runs.lifecycle import (
     catch_stop_signals,
     close_files,
     guarded_write,
-    record_failure,
     run_to_end,
 )
 from febed.solver import RunFailure
@@ -179,10 +178,8 @@ class GasRun(RunMode):
         self.progress(end)
         self.display.end()
 
-    def progress(self, end: float) -> None:
-        """The progress line: simulated time, step, Δt, CFL, Poisson iterations, wall time rate, ETA."""
-        now = time.perf_counter()
-        self._last_progress = now
+    def progress_text(self, end: float, now: float) -> str:
+        """Simulated time, step, Δt, CFL, Poisson iterations, mass imbalance, wall time per step."""
         s = self.solver
         steps = self.steps - self._steps0
         info = self.last_info
@@ -193,13 +190,7 @@ class GasRun(RunMode):
             else ""
         )
         per_step = f"{1e3 * (now - self._wall0) / steps:.1f} ms/step  " if steps else ""
-        self.display.show(
-            f"t = {s.t:.5g} / {end:g} s  step {self.steps}  {gas}{per_step}{self._meter.text(s.t, end, now)}"
-        )
-
-    def fail(self, error) -> None:
-        """Record a failure: write the last good state as a checkpoint and the status (collective)."""
-        record_failure(self, error)
+        return f"t = {s.t:.5g} / {end:g} s  step {self.steps}  {gas}{per_step}".rstrip()
 
     def catch_signals(self):
         """Handle the stop signals by stopping after the current gas step; returns the restorer."""

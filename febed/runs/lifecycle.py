@@ -195,6 +195,23 @@ class RunMode:
         self.log.info(f"checkpoint at t = {meta['time']:.6g} s ({self.STEP} {meta['step']}): {path}")
         return path
 
+    def progress_text(self, end: float, now: float) -> str:
+        """The progress line up to the wall-time rate: simulated time / `end` (s) and the mode's counts."""
+        raise NotImplementedError
+
+    def progress(self, end: float) -> None:
+        """Show the progress line: `progress_text`, wall time per simulated second and ETA.
+
+        Collective under MPI when the mode's counts are (call it on every rank; `after_step` says when).
+        """
+        now = time.perf_counter()
+        self._last_progress = now
+        self.display.show(f"{self.progress_text(end, now)}  {self._meter.text(self.sim_time(), end, now)}")
+
+    def fail(self, error, collective: bool = True) -> None:
+        """Record a failure: the last good state as a checkpoint (if `collective`) and the status (`record_failure`)."""
+        record_failure(self, error, collective)
+
     def status(self, state: str, message: str = "", collective: bool = True) -> None:
         """Write `status.json` (running / finished / failed / interrupted) at the mode's clock (`write_run_status`)."""
         write_run_status(

@@ -39,7 +39,6 @@ from febed.runs.lifecycle import (
     after_step,
     catch_stop_signals,
     guarded_write,
-    record_failure,
     run_to_end,
     stopped_mid_step,
 )
@@ -143,12 +142,10 @@ def _window_end(end: float, next_out: float) -> float:
     return next_out if next_out <= end or _reached(end, next_out) else end
 
 
-def _progress_line(ow: OneWay, end: float, meter: RateMeter, now: float) -> str:
-    """'t = ... / end s  N drag windows  P particles  R removed  <wall time per simulated s>  ETA ...'."""
-    return (
-        f"t = {ow.t:.5g} / {end:g} s  {ow.windows} drag windows  {ow.dem.particles.n_owned} particles  "
-        f"{ow.removed} removed  {meter.text(ow.t, end, now)}"
-    )
+def _progress_text(ow: OneWay, end: float) -> str:
+    """'t = ... / end s  N drag windows  P particles  R removed'."""
+    n = ow.dem.particles.n_owned
+    return f"t = {ow.t:.5g} / {end:g} s  {ow.windows} drag windows  {n} particles  {ow.removed} removed"
 
 
 def run_oneway(case: OneWayCase, outdir, log=None, dem=None, sink=None) -> OneWay:
@@ -187,7 +184,7 @@ def run_oneway(case: OneWayCase, outdir, log=None, dem=None, sink=None) -> OneWa
             now = time.perf_counter()
             if display is not None and (done or now - last >= case.progress_interval):
                 last = now
-                display.show(_progress_line(ow, case.end_time, meter, now))
+                display.show(f"{_progress_text(ow, case.end_time)}  {meter.text(ow.t, case.end_time, now)}")
             if done:
                 break
             ow.step(ow.window(_window_end(case.end_time, next_out), h))
@@ -346,15 +343,9 @@ class OneWayRun(RunMode):
         self.progress(end)
         self.display.end()
 
-    def progress(self, end: float) -> None:
-        """The progress line: simulated time, drag windows, particles, removed, wall time rate, ETA."""
-        now = time.perf_counter()
-        self._last_progress = now
-        self.display.show(_progress_line(self.ow, end, self._meter, now))
-
-    def fail(self, message: str) -> None:
-        """Record a failure: write the last good state as a checkpoint and the status."""
-        record_failure(self, message)
+    def progress_text(self, end: float, now: float) -> str:
+        """Simulated time, drag windows, particles, particles removed."""
+        return _progress_text(self.ow, end)
 
     def close(self, last_output: bool = True) -> None:
         """Close `particles.csv` (its rows are on the disk already)."""
