@@ -30,7 +30,7 @@ from mpi4py import MPI
 from febed.case import load_case
 from febed.io.checkpoint import load_checkpoint
 from febed.io.rundir import get_logger
-from febed.run import CoupledRun
+from febed.runs.coupled import CoupledRun
 
 ROOT = Path(__file__).resolve().parents[1]
 parser = argparse.ArgumentParser()

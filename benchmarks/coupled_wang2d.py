@@ -19,7 +19,7 @@ from pathlib import Path
 
 from febed.case import load_case
 from febed.coupling.exchange import Coupler
-from febed.run import CoupledRun
+from febed.runs.coupled import CoupledRun
 from febed.solver import CoupledSolver
 
 STAGES = {  # what each timed method does, per gas step

@@ -31,7 +31,7 @@ import numpy as np
 
 from febed.case import load_case
 from febed.meshing import load_case_mesh
-from febed.run import SectionAverage
+from febed.runs.probes import SectionAverage
 from febed.solver import build_solver
 
 ROOT = Path(__file__).resolve().parents[1]

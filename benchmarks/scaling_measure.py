@@ -37,7 +37,7 @@ from febed.case import load_case
 from febed.coupling.locate import locate
 from febed.io.checkpoint import load_checkpoint
 from febed.io.rundir import get_logger
-from febed.run import CoupledRun
+from febed.runs.coupled import CoupledRun
 
 ROOT = Path(__file__).resolve().parents[1]
 

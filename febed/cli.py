@@ -57,7 +57,7 @@ from febed.schema import BOUNDARY, SCHEMA, describe
 RUNNERS = {
     "dem": "febed.runs.dem:run",
     "gas": "febed.runs.gas:run",
-    "cfd-dem": "febed.run:run_coupled",
+    "cfd-dem": "febed.runs.coupled:run_coupled",
     "one-way": "febed.runs.oneway:run",
 }
 

@@ -16,7 +16,7 @@ One gas step of size Δt (time-staggered; docs/theory.md, data flow):
    floor), K_i, K_i v̄_i.
 3. **Gas** (`febed.gas.vans.VANSSolver.step`): predictor with −K_i(u_i − v̄_i) implicit, pressure Poisson
    with the ∂ε/∂t source, correction.
-4. **Probes and output** on their own intervals (`febed.run.CoupledRun`).
+4. **Probes and output** on their own intervals (`febed.runs.coupled.CoupledRun`).
 
 Momentum exchange (seed 001 eq 29): a particle receives the drag K_p (u@p − v_p) and the pressure-gradient
 force F_P = −V_p ∇p@p; the gas receives minus both, −Σ_p ω_{p,i} K_p (u_i − v_p) implicitly through K_i and

@@ -53,7 +53,11 @@ def test_the_copy_passes(tree):
 @pytest.mark.parametrize(
     ("module", "text", "message"),
     [
-        ("dem/walls", "import febed.run\n", "febed.dem.walls imports febed.run (layer runs above layer dem)"),
+        (
+            "dem/walls",
+            "import febed.runs.coupled\n",
+            "febed.dem.walls imports febed.runs.coupled (layer runs above layer dem)",
+        ),
         (
             "io/probes",
             "def later():\n    from febed.study import load_study\n\n    return load_study\n",
@@ -67,8 +71,8 @@ def test_the_copy_passes(tree):
         ),  # fmt: skip
         (
             "post/series",
-            "from febed.run import bed_height\n",
-            "febed.post.series imports febed.run (layer runs beside layer post: neither imports the other)",
+            "from febed.runs.probes import bed_height\n",
+            "febed.post.series imports febed.runs.probes (layer runs beside layer post: neither imports the other)",
         ),  # fmt: skip
         (
             "solver",
@@ -84,7 +88,8 @@ def test_a_planted_import_fails_naming_its_line(tree, module, text, message):
         line += 1  # the import is the function's first line
     res = check(tree)
     assert res.returncode == 1, res.stdout + res.stderr
-    assert f"{where}:{line}: {message}" in errors(res), res.stdout  # (febed.run -> ... -> febed.dem.walls: a cycle too)
+    # (febed.runs.coupled -> ... -> febed.dem.walls: a cycle too)
+    assert f"{where}:{line}: {message}" in errors(res), res.stdout
     assert "import(s) against febed's layers" in res.stderr
 
 
@@ -108,7 +113,7 @@ def test_type_checking_imports_do_not_count(tree):
     plant(
         tree,
         "dem/walls",
-        "from typing import TYPE_CHECKING\n\nif TYPE_CHECKING:\n    from febed.run import CoupledRun\n",
+        "from typing import TYPE_CHECKING\n\nif TYPE_CHECKING:\n    from febed.runs.coupled import CoupledRun\n",
     )
     res = check(tree)
     assert res.returncode == 0 and errors(res) == [], res.stdout

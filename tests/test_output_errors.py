@@ -262,7 +262,7 @@ def test_an_output_error_on_rank_0_alone_stops_every_rank(mpi_tmp_path, monkeypa
     from febed.case import load_case
     from febed.io.probes import ProbeFile
     from febed.io.rundir import get_logger
-    from febed.run import CoupledRun
+    from febed.runs.coupled import CoupledRun
     from febed.runs.lifecycle import OutputFailure, run_to_end
 
     comm = MPI.COMM_WORLD

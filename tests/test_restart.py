@@ -215,7 +215,7 @@ def test_blow_up_on_one_rank_stops_every_rank_with_the_last_good_state(mpi_tmp_p
 
     from febed.case import load_case
     from febed.io.rundir import get_logger
-    from febed.run import CoupledRun
+    from febed.runs.coupled import CoupledRun
     from febed.solver import RunFailure
 
     comm = MPI.COMM_WORLD

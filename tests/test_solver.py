@@ -141,7 +141,7 @@ def test_fixed_bed_pressure_drop_is_ergun(tmp_path):
     s = coupled(case, tmp_path, lattice((0, 0, 0), (0.01, 0.01, 0.016), d), d, 2500.0)
     for _ in range(300):
         s.step()
-    from febed.run import SectionAverage
+    from febed.runs.probes import SectionAverage
 
     lo, hi = np.zeros(3), np.array([0.01, 0.01, 0.03])
     z1, z2 = 0.002, 0.012
@@ -202,7 +202,7 @@ def test_outlet_closed_to_particles_is_a_lid_the_gas_still_leaves_by(mpi_tmp_pat
     # it came back down at about e times its arrival speed (gravity and drag over ~3 ms: a few percent)
     assert -vmin == pytest.approx(e, abs=0.06), vmin
     # the gas is not held back: through the lid it leaves as it comes in (0.2 m/s over the 1 cm² top)
-    from febed.run import SectionAverage
+    from febed.runs.probes import SectionAverage
 
     lo, hi = np.zeros(3), np.array([0.01, 0.01, 0.02])
     w_top = SectionAverage(s.ma, 2, 0.02, lo, hi)(np.ascontiguousarray(s.gas.u[:, 2]))

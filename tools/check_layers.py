@@ -35,7 +35,7 @@ LAYERS = (
     ("command line", {"cli": ("febed.cli", "febed.post.cli", "febed.post.__main__")}),
     ("studies", {"study": ("febed.study",)}),
     ("runs and post-processing", {
-        "runs": ("febed.runs", "febed.run", "febed.restart", "febed.preflight"),
+        "runs": ("febed.runs", "febed.restart", "febed.preflight"),
         "post": ("febed.post",),
     }),
     ("the coupled model", {"model": ("febed.solver", "febed.bed", "febed.coarse", "febed.case")}),

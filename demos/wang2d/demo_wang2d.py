@@ -34,7 +34,7 @@ from febed.case import load_case
 from febed.io.particles import read_vtp
 from febed.io.probes import read_probes
 from febed.io.rundir import get_logger, prepare_output, release_output
-from febed.run import run_coupled
+from febed.runs.coupled import run_coupled
 
 HERE = Path(__file__).parent
 parser = argparse.ArgumentParser()

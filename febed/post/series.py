@@ -2,7 +2,7 @@
 
 Non-dimensionalisations (seed 001 §4): time t / (d_p / U_f), heights z / H. The pressure drop is compared
 with the buoyant bed weight per cross-section, W/A = (ρ_p − ρ_g) g Σ V_p / A, which is what `dp_bed`
-(bottom − top − the gas column's weight, see febed/run.py) must equal once the bed is fluidized.
+(bottom − top − the gas column's weight, see febed/runs/coupled.py) must equal once the bed is fluidized.
 """
 
 from __future__ import annotations
