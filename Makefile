@@ -4,6 +4,7 @@ VENV  := .venv
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.febed-setup
 DEB_PKGS := python3-dolfinx python3-petsc4py python3-mpi4py python3-numba python3-gmsh python3-pytest \
+            python3-pytest-xdist \
             python3-matplotlib python3-h5py python3-scipy python3-venv python3-pip python3-setuptools \
             openmpi-bin
 # root needs sudo-less apt and mpirun --allow-run-as-root; a normal user needs sudo for apt only.
@@ -12,6 +13,8 @@ SUDO    := $(if $(IS_ROOT),,sudo)
 MPIEXEC := mpirun $(if $(IS_ROOT),--allow-run-as-root) --oversubscribe
 MPIRUN  := $(MPIEXEC) -n 2
 PYTEST  := $(PY) -m pytest
+# processes of the serial tests (pytest-xdist; one test file per process at a time): `make test TEST_WORKERS=4`
+TEST_WORKERS ?= 2
 # $(call apt_ensure,PACKAGES): apt-get install those of the Debian PACKAGES that are not installed yet.
 apt_ensure = missing=""; for p in $(1); do \
 	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
@@ -38,7 +41,7 @@ demo: setup
 test: setup lint test-serial test-mpi
 
 test-serial: setup
-	$(PYTEST) -m "not slow"
+	$(PYTEST) -m "not slow" -n $(TEST_WORKERS) --dist loadfile
 
 # The MPI tests on 2 ranks, and the many-rank tests (partition corners, restarts onto fewer ranks) on 4.
 test-mpi: setup
