@@ -170,10 +170,10 @@ class PressureSolver:
         if direct:  # set on this solver only: the options database keeps what another solver may need
             self.ksp.setType(DIRECT_OPTIONS["ksp_type"])
             self.ksp.getPC().setType(DIRECT_OPTIONS["pc_type"])
-        if self.ksp.getType() != PETSc.KSP.Type.PREONLY:
-            self.ksp.setInitialGuessNonzero(True)  # warm start from the previous increment
-            if not opts.hasName(prefix + "ksp_norm_type"):
-                self.ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)  # tolerances on the true residual
+        self.prefix = prefix
+        self.user_pc = user_pc
+        self.fallbacks = 0  # times a failed preconditioner setup was replaced by the fallback (`solve`)
+        self._iterative_settings(opts)
         if self.weighted is not None and self.ksp.getType() == PETSc.KSP.Type.PREONLY:
             raise ValueError(
                 "gas.drag_weighted_projection needs an iterative pressure solver: the PETSc options set "
@@ -183,6 +183,28 @@ class PressureSolver:
         self.ksp.setUp()
         self.setup_count = 1  # the preconditioner's matrix never changes: PETSc reuses this setup in every solve
         self.comm = comm
+
+    def _iterative_settings(self, opts) -> None:
+        """Warm start and true-residual tolerances for an iterative solve (unless the user set the norm)."""
+        if self.ksp.getType() != PETSc.KSP.Type.PREONLY:
+            self.ksp.setInitialGuessNonzero(True)  # warm start from the previous increment
+            if not opts.hasName(self.prefix + "ksp_norm_type"):
+                self.ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)  # tolerances on the true residual
+
+    def _fall_back(self) -> None:
+        """Replace a preconditioner whose setup failed by CG + GAMG (`FALLBACK_OPTIONS`), from φ = 0 (collective)."""
+        opts = PETSc.Options()
+        _write_defaults(opts, self.prefix, {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS})
+        failed, self.ksp = self.ksp, PETSc.KSP().create(self.comm)  # a new solver: PETSc keeps the failure
+        failed.destroy()
+        self.ksp.setOptionsPrefix(self.prefix)
+        self.ksp.setOperators(self._current, self.A)
+        self.ksp.setFromOptions()
+        self._iterative_settings(opts)
+        self.ksp.setUp()
+        self.setup_count += 1
+        self.fallbacks += 1
+        self.x.set(0.0)
 
     def set_weights(self, w_ext: np.ndarray) -> None:
         """Make the operator the edge-weighted Laplacian L_w for the weights `w_ext` (extended nodal array)."""
@@ -205,6 +227,13 @@ class PressureSolver:
             self.nullspace.remove(self.b)
         self.ksp.solve(self.b, self.x)
         reason = self.ksp.getConvergedReason()
+        if reason == PETSc.KSP.ConvergedReason.DIVERGED_PCSETUP_FAILED and not self.user_pc and self.fallbacks == 0:
+            # the default preconditioner's setup failed (seen rarely with ML on a closed domain's singular L):
+            # the same solve with GAMG; a preconditioner the user chose is the user's to change
+            self._fall_back()
+            self.ksp.setTolerances(rtol=rtol, atol=atol)
+            self.ksp.solve(self.b, self.x)
+            reason = self.ksp.getConvergedReason()
         if reason < 0:
             raise PressureSolveError(
                 f"the pressure solve did not converge (PETSc KSP reason {reason}) after "

@@ -88,3 +88,37 @@ def test_closed_domain_keeps_the_iterative_solver():
     s = PressureSolver(Q, np.zeros(0, dtype=np.int32), False, "febed_test_closed_")
     assert s.ksp.getType() == PETSc.KSP.Type.CG
     s.destroy()
+
+
+def test_a_failed_default_preconditioner_falls_back_to_gamg():
+    """A closed domain's L is singular: an LU factorisation of it fails (zero pivot), like a failed ML setup."""
+    Q, _ = _space(6)
+    b = _rhs(Q)
+    b -= b.mean()  # compatible with the constant null space
+    s = PressureSolver(Q, np.zeros(0, dtype=np.int32), False, "febed_test_fallback_")
+    s.ksp.getPC().setType("lu")  # as if the default preconditioner's setup failed
+    phi, its = s.solve(b, 1e-10, 1e-300)
+    assert s.fallbacks == 1 and s.ksp.getPC().getType() == "gamg" and its > 0
+    ref = PressureSolver(Q, np.zeros(0, dtype=np.int32), False, "febed_test_fallback_ref_")
+    phi_ref, _ = ref.solve(b, 1e-10, 1e-300)
+    n = Q.dofmap.index_map.size_local
+    d = (phi - phi.mean())[:n] - (phi_ref - phi_ref.mean())[:n]
+    assert np.max(np.abs(d)) <= 1e-7 * np.max(np.abs(phi_ref))
+    for solver in (s, ref):
+        solver.destroy()
+
+
+def test_a_failed_user_preconditioner_is_reported_not_replaced():
+    Q, _ = _space(6)
+    b = _rhs(Q)
+    b -= b.mean()
+    opts = PETSc.Options()
+    opts["febed_test_userlu_pc_type"] = "lu"
+    try:
+        s = PressureSolver(Q, np.zeros(0, dtype=np.int32), False, "febed_test_userlu_")
+        with pytest.raises(pressure.PressureSolveError, match="did not converge"):
+            s.solve(b, 1e-10, 1e-300)
+        assert s.fallbacks == 0
+        s.destroy()
+    finally:
+        opts.delValue("febed_test_userlu_pc_type")
