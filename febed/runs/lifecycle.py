@@ -157,11 +157,13 @@ def checkpoint_or_fail(write, *args):
 
 
 class RunMode:
-    """What every run mode (coupled, DEM, gas, one-way) does the same way: its checkpoints and its `status.json`.
+    """What every run mode (coupled, DEM, gas, one-way) does the same way: checkpoints, progress, failures, status.
 
-    A mode sets `case`, `outdir`, `log` and `comm`, and gives `capture()` -> (arrays, meta) of its state (the
-    `febed.restart` format), `sim_time()` (s) and `steps_done()` at its own clock, `STEP` (what a step is called
-    in the log), and `_checkpointed(gathered, meta, state)` for what it does after a checkpoint is written.
+    A mode sets `case`, `outdir`, `log`, `comm`, `display` (`febed.io.progress.Progress`) and `_meter`
+    (`febed.io.progress.RateMeter`), and gives `capture()` -> (arrays, meta) of its state (the `febed.restart`
+    format), `sim_time()` (s) and `steps_done()` at its own clock, `STEP` (what a step is called in the log),
+    `progress_text(end, now)` (its part of the progress line) and `_checkpointed(gathered, meta, state)` for what
+    it does after a checkpoint is written.
     """
 
     STEP = "step"
