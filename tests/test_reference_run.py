@@ -1,10 +1,10 @@
 """The seed-000 bed over its first 0.05 s against a stored reference: a change of behaviour shows here.
 
 `tests/data/wang2d-probes-0.05s.csv` holds the probes (every 1e-3 s) of `demos/wang2d/wang2d.toml` run on one
-process to t = 0.05 s, and on its first line the machine and library versions that wrote them. A change of
-code that is not meant to change the results (a refactor, a faster kernel with the same arithmetic) must
-reproduce them bit for bit on such a machine: febed's runs are deterministic on one process (the restart tests
-rely on it too).
+process to t = 0.05 s, and on its first line the CPU (as Numba compiles for it) and library versions that wrote
+them. A change of code that is not meant to change the results (a refactor, a faster kernel with the same
+arithmetic) must reproduce them bit for bit on such a machine: febed's runs are deterministic on one process
+(the restart tests rely on it too).
 
 The bits are not portable: Numba compiles for the CPU it runs on, and the force loop's fast-math products may
 be contracted differently on another one. The bed is chaotic even over 0.05 s: the gas viscosity changed in its
@@ -18,6 +18,7 @@ refactors):
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
 import os
 import platform
@@ -38,12 +39,13 @@ COLUMNS = ("kinetic_energy", "bed_height", "dp_bed", "p_bottom", "p_top", "p_0.0
 
 
 def machine() -> str:
-    """The CPU and the versions of the libraries the probes' bits depend on."""
-    cpu = platform.machine()
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
+    """The CPU Numba compiles for (LLVM's name and a hash of its features) and the libraries the bits depend on."""
+    import llvmlite.binding as llvm
+
+    llvm.initialize()
+    llvm.initialize_native_target()
+    features = hashlib.sha256(llvm.get_host_cpu_features().flatten().encode()).hexdigest()[:8]
+    cpu = f"{platform.machine()} {llvm.get_host_cpu_name()} features {features}"
     libs = []
     for name in ("numba", "llvmlite", "numpy", "petsc4py", "fenics-dolfinx", "mpi4py"):
         try:
