@@ -43,11 +43,9 @@ import numpy as np
 from febed import restart as rs
 from febed.coupling.exchange import solid_volume
 from febed.dem.solver import DEMFailure, StopRequested
-from febed.io.checkpoint import load_checkpoint
 from febed.io.fields import FieldWriter
 from febed.io.particles import ParticleWriter
 from febed.io.probes import ProbeFile
-from febed.io.progress import Progress, RateMeter
 from febed.meshing import load_case_mesh
 from febed.parallel.exchange import balance_line
 from febed.runs.lifecycle import (
@@ -58,6 +56,7 @@ from febed.runs.lifecycle import (
     close_after_error,
     close_files,
     guarded_write,
+    load_restart,
     record_internal_error,
     run_to_end,
     stopped_mid_step,
@@ -119,10 +118,9 @@ class CoupledRun(RunMode):
             self.restarted_from = path
         self.probes = self.fields = None
         self.broken = False  # a rank failed alone: collectives would hang
-        self.output_failed = False  # an output error stopped the run: nothing more is written
         self.mid_step = False  # stopped in the middle of a gas step: the state in memory is not a whole step
         self._closed = False
-        self.checkpoint_written = None  # (time, path) of the newest checkpoint this run wrote
+        self._start_lifecycle(s.t)
         try:
             self.probes = guarded_write(
                 comm, self.outdir / "probes.csv", ProbeFile, self.outdir / "probes.csv", self.columns, comm,
@@ -132,11 +130,6 @@ class CoupledRun(RunMode):
         except OutputFailure:
             close_after_error(self, False)
             raise
-        self.display = Progress(log, comm.rank)
-        self.good = None  # (arrays, meta) of the last state that passed the health checks
-        self._signal = 0
-        self._last_progress = self._last_checkpoint = time.perf_counter()
-        self._meter = RateMeter(s.t)
 
     def _writers(self) -> None:
         s = self.solver
@@ -376,10 +369,7 @@ def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
     Raises:
         RunFailure: the run could not go on (after writing its last good state and a failed status).
     """
-    ckpt = None
-    if restart is not None:
-        ckpt = load_checkpoint(Path(restart), comm)
-        rs.check_restartable(ckpt[2], case)
+    ckpt = load_restart(restart, case, comm)
     run = CoupledRun(case, Path(outdir), log, comm, restart=ckpt)
     s = run.solver
     start = f"restarted from {run.restarted_from} at t = {s.t:.6g} s" if ckpt else "cfd-dem"

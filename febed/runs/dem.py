@@ -22,13 +22,10 @@ from mpi4py import MPI
 
 import numpy as np
 
-from febed import restart as rs
 from febed.bed import build_dem, dem_from_case, particle_exchange, walls_from_mesh
 from febed.dem.particles import Particles
 from febed.dem.solver import DEM, DEMFailure, StopRequested
-from febed.io.checkpoint import load_checkpoint
 from febed.io.particles import ParticleWriter
-from febed.io.progress import Progress, RateMeter
 from febed.io.state import dem_arrays, load_dem
 from febed.meshing import load_case_mesh
 from febed.parallel.exchange import balance_line
@@ -37,6 +34,7 @@ from febed.runs.lifecycle import (
     after_step,
     catch_stop_signals,
     guarded_write,
+    load_restart,
     run_to_end,
 )
 
@@ -79,13 +77,7 @@ class DEMRun(RunMode):
         self.hi = np.maximum.reduce(comm.allgather(md.mesh.geometry.x.max(axis=0))) + 1e-9
         folder = self.outdir / "particles"
         self.writer = guarded_write(comm, folder, ParticleWriter, folder, comm=comm, entries=files)
-        self.display = Progress(log, comm.rank)
-        self.good = None  # (arrays, meta) of the last particle output
-        self.output_failed = False  # an output error stopped the run
-        self.checkpoint_written = None  # (time, path) of the newest checkpoint this run wrote
-        self._signal = 0
-        self._last_progress = self._last_checkpoint = time.perf_counter()
-        self._meter = RateMeter(self.dem.time)
+        self._start_lifecycle(self.dem.time)
 
     # ------------------------------------------------------------------------------------ state
     def capture(self) -> tuple[dict, dict]:
@@ -187,10 +179,7 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD, restart=None) -> DEM:
 
     `restart`: a checkpoint file or run folder to continue from (its newest valid checkpoint).
     """
-    ckpt = None
-    if restart is not None:
-        ckpt = load_checkpoint(Path(restart), comm)
-        rs.check_restartable(ckpt[2], case)
+    ckpt = load_restart(restart, case, comm)
     r = DEMRun(case, outdir, log, comm, restart=ckpt)
     dem = r.dem
     start = f"restarted from {r.restarted_from} at t = {dem.time:.6g} s" if ckpt else "DEM"

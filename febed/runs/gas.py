@@ -20,19 +20,15 @@ stops the run with a message naming the node and the time, writes the last state
 from __future__ import annotations
 
 import logging
-import time
 from pathlib import Path
 
 from mpi4py import MPI
 
 import numpy as np
 
-from febed import restart as rs
 from febed.gas.pressure import PressureSolveError
 from febed.gas.vans import VANSSolver
-from febed.io.checkpoint import load_checkpoint
 from febed.io.fields import FieldWriter
-from febed.io.progress import Progress, RateMeter
 from febed.io.state import gas_arrays, restore_gas
 from febed.meshing import load_case_mesh
 from febed.runs.lifecycle import (
@@ -41,6 +37,7 @@ from febed.runs.lifecycle import (
     catch_stop_signals,
     close_files,
     guarded_write,
+    load_restart,
     run_to_end,
 )
 from febed.solver import RunFailure
@@ -79,15 +76,10 @@ class GasRun(RunMode):
         name = "fields.xdmf" if self.segment == 0 else f"fields.restart{self.segment}.xdmf"
         self.writer = guarded_write(comm, self.outdir / name, FieldWriter, self.outdir / name, self.md.mesh,
                                     s.functions(), comm)  # fmt: skip
-        self.display = Progress(log, comm.rank)
-        self.good = None  # (arrays, meta) of the last state that passed the checks
-        self.output_failed = False  # an output error stopped the run
-        self.checkpoint_written = None  # (time, path) of the newest checkpoint this run wrote
+        self._start_lifecycle(s.t)
         self.last_info = None
-        self._signal = 0
-        self._wall0 = self._last_progress = self._last_checkpoint = time.perf_counter()
+        self._wall0 = self._last_progress
         self._steps0 = self.steps
-        self._meter = RateMeter(s.t)
 
     # ------------------------------------------------------------------------------------ state
     def capture(self) -> tuple[dict, dict]:
@@ -208,10 +200,7 @@ def run(case, outdir, log: logging.Logger | None = None, eps=None, mesh_data=Non
     """
     log = log or logging.getLogger("febed")
     comm = MPI.COMM_WORLD
-    ckpt = None
-    if restart is not None:
-        ckpt = load_checkpoint(Path(restart), comm)
-        rs.check_restartable(ckpt[2], case)
+    ckpt = load_restart(restart, case, comm)
     r = GasRun(case, outdir, log, comm, eps=eps, mesh_data=mesh_data, restart=ckpt)
     s = r.solver
     start = f"restarted from {r.restarted_from} at t = {s.t:.6g} s" if ckpt else "gas"

@@ -47,8 +47,17 @@ from mpi4py import MPI
 
 import numpy as np
 
+from febed import restart as rs
 from febed.dem.solver import DEMFailure
-from febed.io.checkpoint import FOLDER, CheckpointError, list_checkpoints, read_meta, write_checkpoint
+from febed.io.checkpoint import (
+    FOLDER,
+    CheckpointError,
+    list_checkpoints,
+    load_checkpoint,
+    read_meta,
+    write_checkpoint,
+)
+from febed.io.progress import Progress, RateMeter
 from febed.io.rundir import LOG_FILE, STATUS_FILE, write_status
 from febed.io.state import gather as gather_state
 from febed.solver import RunFailure
@@ -168,6 +177,16 @@ class RunMode:
 
     STEP = "step"
 
+    def _start_lifecycle(self, t: float) -> None:
+        """The lifecycle's own state for a run starting or continuing at simulated time t (s)."""
+        self.display = Progress(self.log, self.comm.rank)
+        self.good = None  # (arrays, meta) of the last state that passed the checks
+        self.output_failed = False  # an output error stopped the run: nothing more is written
+        self.checkpoint_written = None  # (time, path) of the newest checkpoint this run wrote
+        self._signal = 0
+        self._last_progress = self._last_checkpoint = time.perf_counter()
+        self._meter = RateMeter(t)
+
     def sim_time(self) -> float:
         """The simulated time (s) of the mode's clock."""
         raise NotImplementedError
@@ -220,6 +239,19 @@ class RunMode:
             self.outdir, state, self.sim_time(), self.case.run.end_time, self.steps_done(), message, self.comm,
             collective,
         )  # fmt: skip
+
+
+def load_restart(restart, case, comm):
+    """(path, arrays, meta) of the checkpoint `restart`, or None without one (collective).
+
+    `restart`: a checkpoint file, or a run folder (its newest valid checkpoint). A checkpoint that cannot continue
+    `case` is refused (`febed.restart.check_restartable`).
+    """
+    if restart is None:
+        return None
+    ckpt = load_checkpoint(Path(restart), comm)
+    rs.check_restartable(ckpt[2], case)
+    return ckpt
 
 
 # -------------------------------------------------------------------------------------------------- status

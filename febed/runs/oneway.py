@@ -23,14 +23,13 @@ from mpi4py import MPI
 
 import numpy as np
 
-from febed import restart as rs
 from febed.bed import build_dem, dem_from_case, walls_from_mesh
 from febed.coarse.oneway import OneWay, OneWayCase, case_settings
 from febed.dem.particles import Particles
 from febed.dem.solver import DEMFailure, StopRequested
 from febed.gas.prescribed import make_prescribed_gas
 from febed.io.atomic import sync_close
-from febed.io.checkpoint import CheckpointError, load_checkpoint
+from febed.io.checkpoint import CheckpointError
 from febed.io.progress import Progress, RateMeter
 from febed.io.state import dem_arrays, load_dem
 from febed.meshing import load_case_mesh
@@ -39,6 +38,7 @@ from febed.runs.lifecycle import (
     after_step,
     catch_stop_signals,
     guarded_write,
+    load_restart,
     run_to_end,
     stopped_mid_step,
 )
@@ -250,13 +250,7 @@ class OneWayRun(RunMode):
         self.next_ckpt = self.ow.t + case.output.checkpoint_interval
         csv = self.outdir / "particles.csv"
         self.rows = guarded_write(comm, csv, ParticleRows, csv, keep)
-        self.display = Progress(log, comm.rank)
-        self.good = None  # (arrays, meta) of the last particle output
-        self.output_failed = False  # an output error stopped the run
-        self.checkpoint_written = None  # (time, path) of the newest checkpoint this run wrote
-        self._signal = 0
-        self._last_progress = self._last_checkpoint = time.perf_counter()
-        self._meter = RateMeter(self.ow.t)
+        self._start_lifecycle(self.ow.t)
 
     def _outside(self, pos, diameter):
         return np.any((pos < self.lo) | (pos > self.hi), axis=1)
@@ -366,10 +360,7 @@ def run(case, outdir, log, comm=None, restart=None) -> OneWay:
     comm = comm or MPI.COMM_WORLD
     if comm.size > 1:
         raise ValueError("[run] mode = 'one-way' runs on one process: start it without mpirun")
-    ckpt = None
-    if restart is not None:
-        ckpt = load_checkpoint(Path(restart), comm)
-        rs.check_restartable(ckpt[2], case)
+    ckpt = load_restart(restart, case, comm)
     r = OneWayRun(case, outdir, log, comm, restart=ckpt)
     ow, s = r.ow, r.settings
     start = f"restarted from {r.restarted_from} at t = {ow.t:.6g} s" if ckpt else "one-way"
