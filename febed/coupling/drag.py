@@ -255,9 +255,14 @@ def as_drag_law(law) -> DragLaw:
     raise ValueError(f"law: {law!r} is not a registered drag law ({', '.join(DRAG_LAWS.names())})")
 
 
+def _f64(a) -> np.ndarray:
+    """`a` as a C-contiguous float64 array (no copy if it is one): each kernel compiles for one signature."""
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
 def drag_kernel(law, eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F):
     """`_drag_kernel` for a law given by name, `DragLaw` or function (see there)."""
-    _drag_kernel(as_drag_law(law), eps, u, v, d_orig, n_orig, rho_g, mu_g, K, F)
+    _drag_kernel(as_drag_law(law), _f64(eps), _f64(u), _f64(v), _f64(d_orig), _f64(n_orig), rho_g, mu_g, K, F)
 
 
 @njit(cache=True)
@@ -322,14 +327,24 @@ def drag_forces(law, eps, u, v, d_orig, n_orig, rho_g: float, mu_g: float, K=Non
 
 
 class AtParticles(NamedTuple):
-    """The particles as the gas forces see them: their cells and node weights, velocities and sizes."""
+    """The particles as the gas forces see them: their cells and node weights, velocities and sizes.
 
-    cell_dofs: np.ndarray  # (cells, nv) int: each cell's nodes
+    `AtParticles.of` makes one with the dtypes the kernels are compiled for (int32 indices, float64 values).
+    """
+
+    cell_dofs: np.ndarray  # (cells, nv) int32: each cell's nodes
     cell: np.ndarray  # (N,) int32: each particle's cell (-1: not located)
     w: np.ndarray  # (N, nv): node weights (`febed.coupling.weights`)
     v: np.ndarray  # (N, 3) m/s
     d_orig: np.ndarray  # (N,) m: the diameter the drag law sees
     n_orig: np.ndarray  # (N,): originals each particle carries
+
+    @classmethod
+    def of(cls, cell_dofs, cell, w, v, d_orig, n_orig) -> AtParticles:
+        """The record with C-contiguous int32 cell_dofs and cell and float64 arrays (no copy where they are)."""
+        i32 = np.int32
+        return cls(np.ascontiguousarray(cell_dofs, dtype=i32), np.ascontiguousarray(cell, dtype=i32), _f64(w),
+                   _f64(v), _f64(d_orig), _f64(n_orig))  # fmt: skip
 
 
 class NodalGas(NamedTuple):
@@ -370,7 +385,7 @@ _NO_RECORD = np.empty((0, RECORD_COLUMNS))
 
 def gas_forces_kernel(law, parts: AtParticles, gas: NodalGas, out: GasForces) -> float:
     """`gas_forces_into` for a law given by name, `DragLaw` or function (see there)."""
-    return gas_forces_into(as_drag_law(law), parts, gas, out)
+    return gas_forces_into(as_drag_law(law), AtParticles.of(*parts), gas, out)
 
 
 @njit(cache=True)

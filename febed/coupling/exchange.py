@@ -177,7 +177,7 @@ class Coupler:
         return gas_forces_into(self.law, self._at(v, d_orig, n_orig), self._gas(u_nodes, eps_nodes, gradp_nodes), out)
 
     def _at(self, v, d_orig, n_orig) -> AtParticles:
-        return AtParticles(self.ma.cell_dofs, self.cell, self.w, v, d_orig, n_orig)
+        return AtParticles.of(self.ma.cell_dofs, self.cell, self.w, v, d_orig, n_orig)
 
     def _gas(self, u_nodes, eps_nodes, gradp_nodes) -> NodalGas:
         return NodalGas(u_nodes, eps_nodes, gradp_nodes, self.rho_g, self.mu_g, self.pressure_gradient)
@@ -198,12 +198,10 @@ class Coupler:
         cell = self.cell if owned is None else np.where(owned, self.cell, -1).astype(np.int32)
         n = cell.size
         d3 = np.asarray(d_orig, dtype=np.float64) ** 3  # NumPy's power, as `solid_volume` (bit-identical)
-        n_orig = np.asarray(n_orig)
-        if n_orig.dtype != np.int64:  # counts as int64 (the particles' own array) or float64
-            n_orig = n_orig.astype(np.float64)
-        K = np.asarray(K, dtype=np.float64)
-        v = np.asarray(v, dtype=np.float64)
-        F = np.zeros((0, 3)) if F_explicit is None else np.asarray(F_explicit, dtype=np.float64)
+        n_orig = np.ascontiguousarray(n_orig, dtype=np.float64)  # C-contiguous float64: one compiled signature
+        K = np.ascontiguousarray(K, dtype=np.float64)
+        v = np.ascontiguousarray(v, dtype=np.float64)
+        F = np.zeros((0, 3)) if F_explicit is None else np.ascontiguousarray(F_explicit, dtype=np.float64)
         for name, a, shape in (("d_orig", d3, (n,)), ("n_orig", n_orig, (n,)), ("K", K, (n,)), ("v", v, (n, 3)),
                                ("F_explicit", F, (n if F_explicit is not None else 0, 3))):  # fmt: skip
             if a.shape != shape:

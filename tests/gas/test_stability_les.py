@@ -90,6 +90,7 @@ def test_strain_rate_norm_of_a_general_gradient(gdim):
     u = np.eye(gdim)  # column node j carries the unit vector e_j, so Σ_k grad[k, d] u[k, c] = grad[c, d]
     grad = mass * A
     out = np.zeros(1)
-    strain_rate_norm(np.array([0, gdim]), np.arange(gdim), np.ascontiguousarray(grad), u, np.array([mass]), out)
+    indptr, indices = np.array([0, gdim], dtype=np.int64), np.arange(gdim, dtype=np.int32)  # the operators' dtypes
+    strain_rate_norm(indptr, indices, np.ascontiguousarray(grad), u, np.array([mass]), out)
     S = 0.5 * (A + A.T)
     assert out[0] == pytest.approx(np.sqrt(2.0 * np.sum(S * S)), rel=1e-14)
