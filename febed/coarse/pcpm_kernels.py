@@ -140,13 +140,16 @@ def _grid(pos, n, h):
     return lo, h, dims, head, nxt
 
 
-@njit(cache=True, inline="always")
+# The small helpers below are plain Numba calls, not `inline="always"`: LLVM inlines them all the same (the
+# PCPM probes are bit for bit those of the IR-inlined version), while Numba's IR inlining made the kernels
+# that use them compile in 40 s instead of 12 (benchmarks/kernel_compile.py).
+@njit(cache=True)
 def _ci(x, lo, h, m):
     c = int((x - lo) / h)
     return min(max(c, 0), m - 1)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cell_range(x, y, z, reach, lo, h, dims):
     """Index ranges (i0, i1, j0, j1, k0, k1) of the grid cells within `reach` of (x, y, z)."""
     return (_ci(x - reach, lo[0], h, dims[0]), _ci(x + reach, lo[0], h, dims[0]),
@@ -154,7 +157,7 @@ def _cell_range(x, y, z, reach, lo, h, dims):
             _ci(z - reach, lo[2], h, dims[2]), _ci(z + reach, lo[2], h, dims[2]))  # fmt: skip
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cell(x, y, z, lo, h, dims):
     return (_ci(x, lo[0], h, dims[0]) * dims[1] + _ci(y, lo[1], h, dims[1])) * dims[2] + _ci(z, lo[2], h, dims[2])
 
@@ -190,7 +193,7 @@ def _overlap_walls(x, y, z, r, walls):
     return worst
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _stiffness(kn, m_ref, ma, mb):
     """Normal stiffness (N/m) of a pair of masses ma, mb (kg; mb = inf for a wall): k_n, or k_n (m_eff/m_ref)^(2/3)."""
     if m_ref > 0.0:
