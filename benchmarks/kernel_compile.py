@@ -1,0 +1,131 @@
+"""Numba compile time per kernel from an empty cache: what a fresh clone's first run (and `make test`) pays.
+
+Runs small cases through `febed run` in this process with the Numba cache pointed at a new temporary folder,
+records every compilation (Numba's "numba:compile" events) and prints, per kernel, the number of signatures
+compiled and the seconds spent in its own compilation (the kernels it calls are counted apart), largest
+first, then the total. Cases (each a fraction of a second of simulated time):
+
+* `wang2d`: the seed-000 bed (DEM with the `linear-history` law and RK2, gas, coupling, Gidaspow blend);
+* `verlet`: the same with velocity Verlet and the `linear` law;
+* `pcpm`: a PCPM bed (particle-group events) on a small box.
+
+    .venv/bin/python benchmarks/kernel_compile.py [--cases wang2d verlet pcpm] [--top 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PCPM_CASE = """
+[run]
+end_time = 0.004
+[mesh]
+builtin = "box"
+extent = [0.02, 0.04]
+size = 0.004
+cell = "quadrilateral"
+[gas.boundary.inlet]
+type = "inlet"
+velocity = 0.6
+[gas.boundary.walls]
+type = "wall"
+[gas.boundary.outlet]
+type = "outlet"
+[particles]
+diameter = 1e-3
+density = 1000.0
+count = 400
+insertion = "lattice"
+region = [0.0, 0.0, -inf, 0.02, 0.04, inf]
+[contact]
+model = "linear"
+stiffness = 200.0
+[coarse_grain]
+model = "pcpm"
+ratio = 2.0
+"""
+
+
+def case_args(name: str, work: Path) -> list[str]:
+    """`febed run` arguments of the named case, writing into `work`."""
+    wang2d = str(ROOT / "demos" / "wang2d" / "wang2d.toml")
+    out = f"output.directory={work / name}"
+    if name == "wang2d":
+        return ["run", wang2d, "--set", out, "--set", "run.end_time=0.002"]
+    if name == "verlet":
+        return ["run", wang2d, "--set", out, "--set", "run.end_time=0.002", "--set", "contact.integrator=verlet",
+                "--set", "contact.model=linear"]  # fmt: skip
+    if name == "pcpm":
+        path = work / "pcpm.toml"
+        path.write_text(PCPM_CASE)
+        return ["run", str(path), "--set", out]
+    raise SystemExit(f"--cases: unknown case {name!r} (wang2d, verlet, pcpm)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", nargs="+", default=["wang2d", "verlet", "pcpm"], help="cases to run, in order")
+    ap.add_argument("--top", type=int, default=30, help="kernels listed")
+    a = ap.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="febed-compile-"))
+    os.environ["NUMBA_CACHE_DIR"] = str(work / "numba")  # an empty cache, set before febed configures Numba
+    from numba.core import event
+
+    from febed.cli import main as febed_main
+
+    own: dict[str, float] = {}
+    count: dict[str, int] = {}
+    stack: list[list] = []  # [name, start, time spent in nested compilations]
+
+    class Recorder(event.Listener):
+        def on_start(self, ev):
+            stack.append([_name(ev), time.perf_counter(), 0.0])
+
+        def on_end(self, ev):
+            name = _name(ev)
+            while stack and stack[-1][0] != name:  # a compilation that failed and was retried another way
+                stack.pop()
+            if not stack:
+                return
+            name, t0, nested = stack.pop()
+            dt = time.perf_counter() - t0
+            own[name] = own.get(name, 0.0) + dt - nested
+            count[name] = count.get(name, 0) + 1
+            if stack:
+                stack[-1][2] += dt
+
+    event.register("numba:compile", Recorder())
+    wall = {}
+    for name in a.cases:
+        t0 = time.perf_counter()
+        code = febed_main(case_args(name, work))
+        wall[name] = time.perf_counter() - t0
+        if code != 0:
+            sys.exit(f"case {name}: febed run exited with {code}")
+    rows = sorted(own.items(), key=lambda kv: -kv[1])
+    print(f"{'kernel':60s} {'signatures':>10s} {'compile s':>10s}")
+    for name, s in rows[: a.top]:
+        print(f"{name:60s} {count[name]:10d} {s:10.2f}")
+    total = sum(own.values())
+    print(f"{len(rows)} kernels, {sum(count.values())} signatures, compile {total:.1f} s in all")
+    print("wall per case (compilation included): " + ", ".join(f"{k} {v:.1f} s" for k, v in wall.items()))
+
+
+def _name(ev) -> str:
+    disp = ev.data.get("dispatcher")
+    fn = getattr(disp, "py_func", None)
+    if fn is None:
+        return str(disp)
+    module = (getattr(fn, "__module__", None) or "numba").removeprefix("febed.")
+    return f"{module}.{getattr(fn, '__qualname__', fn)}"
+
+
+if __name__ == "__main__":
+    main()
