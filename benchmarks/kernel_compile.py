@@ -1,9 +1,9 @@
 """Numba compile time per kernel from an empty cache: what a fresh clone's first run (and `make test`) pays.
 
-Runs small cases through `febed run` in this process with the Numba cache pointed at a new temporary folder,
-records every compilation (Numba's "numba:compile" events) and prints, per kernel, the number of signatures
-compiled and the seconds spent in its own compilation (the kernels it calls are counted apart), largest
-first, then the total. Cases (each a fraction of a second of simulated time):
+Runs small cases through `febed run` in this process with the Numba cache pointed at a new temporary folder
+and prints `tools/compile_times.py`'s table (which does the same over a pytest run): per kernel, its
+signatures and its compile seconds with and without the kernels it compiled on the way, then the total.
+Cases (each a fraction of a second of simulated time):
 
 * `wang2d`: the seed-000 bed (DEM with the `linear-history` law and RK2, gas, coupling, Gidaspow blend);
 * `verlet`: the same with velocity Verlet and the `linear` law;
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -76,55 +77,24 @@ def main() -> None:
     a = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="febed-compile-"))
     os.environ["NUMBA_CACHE_DIR"] = str(work / "numba")  # an empty cache, set before febed configures Numba
+    sys.path.insert(0, str(ROOT / "tools"))
+    from compile_times import CompileRecorder, listener_for  # the recorder of the pytest-run tool
     from numba.core import event
 
     from febed.cli import main as febed_main
 
-    own: dict[str, float] = {}
-    count: dict[str, int] = {}
-    stack: list[list] = []  # [name, start, time spent in nested compilations]
-
-    class Recorder(event.Listener):
-        def on_start(self, ev):
-            stack.append([_name(ev), time.perf_counter(), 0.0])
-
-        def on_end(self, ev):
-            name = _name(ev)
-            while stack and stack[-1][0] != name:  # a compilation that failed and was retried another way
-                stack.pop()
-            if not stack:
-                return
-            name, t0, nested = stack.pop()
-            dt = time.perf_counter() - t0
-            own[name] = own.get(name, 0.0) + dt - nested
-            count[name] = count.get(name, 0) + 1
-            if stack:
-                stack[-1][2] += dt
-
-    event.register("numba:compile", Recorder())
+    recorder = CompileRecorder()
     wall = {}
-    for name in a.cases:
-        t0 = time.perf_counter()
-        code = febed_main(case_args(name, work))
-        wall[name] = time.perf_counter() - t0
-        if code != 0:
-            sys.exit(f"case {name}: febed run exited with {code}")
-    rows = sorted(own.items(), key=lambda kv: -kv[1])
-    print(f"{'kernel':60s} {'signatures':>10s} {'compile s':>10s}")
-    for name, s in rows[: a.top]:
-        print(f"{name:60s} {count[name]:10d} {s:10.2f}")
-    total = sum(own.values())
-    print(f"{len(rows)} kernels, {sum(count.values())} signatures, compile {total:.1f} s in all")
+    with event.install_listener("numba:compile", listener_for(recorder)):
+        for name in a.cases:
+            t0 = time.perf_counter()
+            code = febed_main(case_args(name, work))
+            wall[name] = time.perf_counter() - t0
+            if code != 0:
+                sys.exit(f"case {name}: febed run exited with {code}")
+    print(recorder.report(a.top))
     print("wall per case (compilation included): " + ", ".join(f"{k} {v:.1f} s" for k, v in wall.items()))
-
-
-def _name(ev) -> str:
-    disp = ev.data.get("dispatcher")
-    fn = getattr(disp, "py_func", None)
-    if fn is None:
-        return str(disp)
-    module = (getattr(fn, "__module__", None) or "numba").removeprefix("febed.")
-    return f"{module}.{getattr(fn, '__qualname__', fn)}"
+    shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,8 @@ class CompileRecorder:
     @staticmethod
     def _name(event) -> str:
         func = event.data["dispatcher"].py_func
-        return f"{func.__module__}.{func.__qualname__}"
+        module = getattr(func, "__module__", None) or "numba"  # overload implementations have none
+        return f"{module}.{getattr(func, '__qualname__', func)}"
 
     def on_start(self, event) -> None:
         """A compilation starts (nested inside the one on top of the stack, if any)."""
@@ -41,6 +42,11 @@ class CompileRecorder:
 
     def on_end(self, event) -> None:
         """A compilation ends: its time goes to its kernel, and to its parent's nested time."""
+        name = self._name(event)
+        while self.stack and self.stack[-1][0] != name:  # a nested typing attempt that failed and ended early
+            self.stack.pop()
+        if not self.stack:
+            return
         name, start, nested = self.stack.pop()
         spent = time.perf_counter() - start
         self.inclusive[name] += spent
@@ -64,6 +70,14 @@ class CompileRecorder:
         return "\n".join(lines)
 
 
+def listener_for(recorder: CompileRecorder):
+    """A Numba event listener feeding `recorder` (register it for "numba:compile")."""
+    from numba.core import event
+
+    return type("Listener", (event.Listener,), {"on_start": lambda s, e: recorder.on_start(e),
+                                                "on_end": lambda s, e: recorder.on_end(e)})()  # fmt: skip
+
+
 def main() -> int:
     """Run pytest from an empty cache and print the compile times; returns pytest's exit code."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -76,8 +90,7 @@ def main() -> int:
     from numba.core import event
 
     recorder = CompileRecorder()
-    listener = type("Listener", (event.Listener,), {"on_start": lambda s, e: recorder.on_start(e),
-                                                     "on_end": lambda s, e: recorder.on_end(e)})()  # fmt: skip
+    listener = listener_for(recorder)
     start = time.perf_counter()
     with event.install_listener("numba:compile", listener):
         code = pytest.main(pytest_args or ["-q", "-m", "not slow"])
