@@ -7,7 +7,7 @@ Cases (each a fraction of a second of simulated time):
 
 * `wang2d`: the seed-000 bed (DEM with the `linear-history` law and RK2, gas, coupling, Gidaspow blend);
 * `verlet`: the same with velocity Verlet and the `linear` law;
-* `pcpm`: a PCPM bed (particle-group events) on a small box.
+* `pcpm`: the seed-000 study's PCPM bed from l = 2 (`demos/wang2d/coarse/pcpm2.toml`), past its first events.
 
     .venv/bin/python benchmarks/kernel_compile.py [--cases wang2d verlet pcpm] [--top 30]
 """
@@ -24,35 +24,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-PCPM_CASE = """
-[run]
-end_time = 0.004
-[mesh]
-builtin = "box"
-extent = [0.02, 0.04]
-size = 0.004
-cell = "quadrilateral"
-[gas.boundary.inlet]
-type = "inlet"
-velocity = 0.6
-[gas.boundary.walls]
-type = "wall"
-[gas.boundary.outlet]
-type = "outlet"
-[particles]
-diameter = 1e-3
-density = 1000.0
-count = 400
-insertion = "lattice"
-region = [0.0, 0.0, -inf, 0.02, 0.04, inf]
-[contact]
-model = "linear"
-stiffness = 200.0
-[coarse_grain]
-model = "pcpm"
-ratio = 2.0
-"""
-
 
 def case_args(name: str, work: Path) -> list[str]:
     """`febed run` arguments of the named case, writing into `work`."""
@@ -63,10 +34,9 @@ def case_args(name: str, work: Path) -> list[str]:
     if name == "verlet":
         return ["run", wang2d, "--set", out, "--set", "run.end_time=0.002", "--set", "contact.integrator=verlet",
                 "--set", "contact.model=linear"]  # fmt: skip
-    if name == "pcpm":
-        path = work / "pcpm.toml"
-        path.write_text(PCPM_CASE)
-        return ["run", str(path), "--set", out]
+    if name == "pcpm":  # past the first evaluation of the crush and merge criteria
+        pcpm2 = str(ROOT / "demos" / "wang2d" / "coarse" / "pcpm2.toml")
+        return ["run", pcpm2, "--set", out, "--set", "run.end_time=0.012"]
     raise SystemExit(f"--cases: unknown case {name!r} (wang2d, verlet, pcpm)")
 
 
