@@ -41,7 +41,8 @@ LAYERS = (
     ("the coupled model", {"model": ("febed.solver", "febed.bed", "febed.coarse", "febed.case")}),
     ("MPI particles", {"parallel": ("febed.parallel",)}),
     ("physics", {"dem": ("febed.dem",), "gas": ("febed.gas",), "coupling": ("febed.coupling",)}),
-    ("base", {"base": ("febed.io", "febed.meshing", "febed.schema", "febed.registry", "febed.kernel_cache", "febed")}),
+    ("base", {"base": ("febed.io", "febed.meshing", "febed.schema", "febed.registry", "febed.kernel_cache",
+                       "febed.kernel_records", "febed")}),
 )  # fmt: skip
 
 # Third-party packages worth importing inside a function when the module does not load them otherwise: slow

@@ -16,10 +16,12 @@ import numpy as np
 from numba import njit
 
 from febed.dem.walls import wall_distance, wall_point
+from febed.kernel_records import fast_typeof
 
 NO_CRUSH = np.inf  # d_cl where it is not positive and finite: the group does not crush
 
 
+@fast_typeof
 class Groups(NamedTuple):
     """The groups of one evaluation: rows [0, n) this rank's, [n, n_all) ghosts (obstacles only)."""
 
@@ -33,6 +35,7 @@ class Groups(NamedTuple):
     n_all: int
 
 
+@fast_typeof
 class EventRules(NamedTuple):
     """How groups crush and merge (`febed.coarse.pcpm.GroupDynamics`'s settings)."""
 
@@ -48,6 +51,7 @@ class EventRules(NamedTuple):
     conserve: bool  # accept an event only if it does not add energy
 
 
+@fast_typeof
 class Springs(NamedTuple):
     """The contact springs the events' elastic energy is counted with, and gravity."""
 
@@ -58,6 +62,7 @@ class Springs(NamedTuple):
     gvec: np.ndarray  # (3,) m/s^2
 
 
+@fast_typeof
 class Events(NamedTuple):
     """What `group_events` writes: the parents removed and the new groups."""
 

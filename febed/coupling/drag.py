@@ -37,6 +37,7 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import NativeValue, models, overload, register_model, typeof_impl, unbox
 
+from febed.kernel_records import fast_typeof
 from febed.schema import DRAG_LAWS
 
 
@@ -326,6 +327,7 @@ def drag_forces(law, eps, u, v, d_orig, n_orig, rho_g: float, mu_g: float, K=Non
     return K, F
 
 
+@fast_typeof
 class AtParticles(NamedTuple):
     """The particles as the gas forces see them: their cells and node weights, velocities and sizes.
 
@@ -347,6 +349,7 @@ class AtParticles(NamedTuple):
                    _f64(v), _f64(d_orig), _f64(n_orig))  # fmt: skip
 
 
+@fast_typeof
 class NodalGas(NamedTuple):
     """The gas at the mesh nodes and its properties."""
 
@@ -358,6 +361,7 @@ class NodalGas(NamedTuple):
     pressure_gradient: bool  # add F_P = -V_p grad p (seed 001 eq 27)
 
 
+@fast_typeof
 class GasForces(NamedTuple):
     """What `gas_forces_into` writes; an output with 0 rows is skipped (`GasForces.of` fills those)."""
 

@@ -29,12 +29,14 @@ from febed.coupling.mesh_arrays import (
     MeshArrays,
 )
 from febed.coupling.weights import fill_weights
+from febed.kernel_records import fast_typeof
 
 FOUND, OUTSIDE_DOMAIN, OUTSIDE_LOCAL = 0, 1, 2
 INSIDE_TOL = 1e-10  # tolerance on reference coordinates for "inside"
 _NEWTON_ITERS = 30
 
 
+@fast_typeof
 class CellMesh(NamedTuple):
     """The local cells as the location kernels take them (from `MeshArrays`, see `locate`)."""
 
@@ -48,6 +50,7 @@ class CellMesh(NamedTuple):
     bbox: np.ndarray  # (cells, 2, 3) m: each cell's bounding box
 
 
+@fast_typeof
 class CellGrid(NamedTuple):
     """The uniform grid of bins over the local cells of `MeshArrays`: bin b lists cells[start[b]:start[b + 1]]."""
 
@@ -58,6 +61,7 @@ class CellGrid(NamedTuple):
     cells: np.ndarray  # int
 
 
+@fast_typeof
 class Location(NamedTuple):
     """Where points are, filled by `locate_kernel`: one row per point."""
 

@@ -17,7 +17,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from febed.kernel_records import fast_typeof
 
+
+@fast_typeof
 class Bodies(NamedTuple):
     """The particle rows a kernel works on: [0, n_owned) owned, [n_owned, n) ghost copies of other ranks' rows."""
 
@@ -34,6 +37,7 @@ class Bodies(NamedTuple):
     n: int
 
 
+@fast_typeof
 class Lists(NamedTuple):
     """The candidate contacts of the owned rows (CSR) and their tangential elongations (m)."""
 
@@ -45,6 +49,7 @@ class Lists(NamedTuple):
     whist: np.ndarray  # (wall pairs, 3) m: tangential elongation of each listed particle-wall pair
 
 
+@fast_typeof
 class Model(NamedTuple):
     """The contact laws and the options of the equations of motion."""
 
@@ -55,6 +60,7 @@ class Model(NamedTuple):
     dim2: bool  # 2D: v_z = 0 and omega_x = omega_y = 0 are kept
 
 
+@fast_typeof
 class Scratch(NamedTuple):
     """Work arrays of the integrators (the RK2 start-of-step state, or Verlet's predicted velocities)."""
 

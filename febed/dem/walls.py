@@ -30,10 +30,13 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from febed.kernel_records import fast_typeof
+
 FACE, EDGE, VERTEX = 0, 1, 2
 MAX_WALL_CONTACTS = 16
 
 
+@fast_typeof
 class WallGeometry(NamedTuple):
     """The walls as the Numba kernels take them: wall w is plane w if w < len(plane_p), else facet w - len(plane_p)."""
 
@@ -43,6 +46,7 @@ class WallGeometry(NamedTuple):
     nv: int  # vertices per facet
 
 
+@fast_typeof
 class FacetGrid(NamedTuple):
     """A uniform grid over the facets' bounding boxes: cell c lists facets items[start[c]:start[c + 1]]."""
 
