@@ -39,9 +39,13 @@ LinearParams.__doc__ = (
     "from e_n (seed 001 eq 18), friction mu (`contact.friction_pp` or `friction_pw`)."
 )
 HistoryParams = namedtuple("HistoryParams", "stiffness ce friction stiffness_t cet")
-# fastmath without the NaN/Inf assumptions: allows reciprocals, FMA contraction and reassociation, which only
-# change round-off (the conservation and restitution tests pass with the same tolerances).
-FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+# fastmath without the NaN/Inf assumptions and without reassociation: reciprocals and FMA contraction only change
+# round-off (the conservation and restitution tests pass with the same tolerances). Reassociation would make the
+# results depend on Numba's cache: a kernel that calls the force loop (an integrator) holds its own copy of it,
+# optimised again inside the caller, and which copy runs depends on the order the compiled code was loaded (a
+# run that compiles the kernels calls the loop's own, a run from the cache the integrator's copy); with
+# reassociation the two copies differ in their last bits (tests/dem/test_compiled_equals_cached.py).
+FAST = {"nsz", "arcp", "contract", "afn"}
 
 HistoryParams.__doc__ = "linear + tangential spring stiffness_t (N/m) with damping ratio cet, Coulomb cap friction."
 
