@@ -229,11 +229,11 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "dt_min": Param(1e-6, "s", "smallest gas time step allowed", float, lo=0.0, lo_open=True),
         "dt_max": Param(1e-3, "s", "largest gas time step allowed", float, lo=0.0, lo_open=True),
         "drag_weighted_projection": Param(
-            False,
+            True,
             "-",
             "pressure equation and velocity correction weighted by 1/(1+D), D = K dt/(rho_g eps), as the predictor's "
-            "implicit drag: the pressure follows the drag within the step; false: the constant Laplacian, whose "
-            "pressure lags by D/(1+D) per step (changes results at D of order 1)",
+            "implicit drag: the pressure balances the step's drag, nothing lagged; false: the constant Laplacian, "
+            "whose pressure lags by D/(1+D) per step (changes results at D of order 1)",
             bool,
         ),
         "pressure_passes": Param(

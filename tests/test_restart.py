@@ -173,7 +173,7 @@ def test_load_checkpoint_takes_a_file_a_checkpoint_folder_or_a_run_folder(tmp_pa
     [
         (["run.max_overlap=1e-5"], r"overlap reached .* above run.max_overlap"),
         (["coupling.void_fraction_floor=0.99", "run.max_clipped_fraction=0.0"], r"void fraction sits at its floor"),
-        (['gas.petsc_options="-febed_pressure_ksp_max_it 1"'], r"pressure solve did not converge"),
+        (['gas.petsc_options="-febed_pressure_weighted_ksp_max_it 1"'], r"pressure solve did not converge"),
         (["gas.boundary.walls.particles=false"], r"left the mesh other than through an outlet"),
     ],
     ids=["overlap", "clipped-void-fraction", "poisson", "escape"],
@@ -186,7 +186,7 @@ def test_failures_stop_with_message_checkpoint_and_exit_3(tmp_path, capsys, sett
     try:
         status = febed(out, 0.05, *sets)
     finally:
-        PETSc.Options().delValue("-febed_pressure_ksp_max_it")
+        PETSc.Options().delValue("-febed_pressure_weighted_ksp_max_it")
     assert status == 3
     err = capsys.readouterr().err
     assert "the run failed" in err and " s" in err

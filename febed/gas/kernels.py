@@ -245,43 +245,46 @@ def max_rate(u, width, n):  # pragma: no cover
     return m
 
 
-# --- the drag-weighted pressure operator (VANSParameters.drag_weighted_projection; vans module docstring)
+# --- the drag-weighted pressure operator (VANSParameters.drag_weighted_projection; febed.gas.weighted)
 @njit(cache=True)
-def weighted_laplacian(indptr, indices, lap, w, out):  # pragma: no cover
-    """Edge-weighted Laplacian rows: out_ij = L_ij (w_i + w_j)/2 (j ≠ i), out_ii = −Σ_{j≠i} out_ij.
-
-    `lap` holds the owned rows of L = ∫ ∇φ_i·∇φ_j dx (rows sum to zero), `w` the weights over the extended
-    columns; the result is symmetric, has zero row sums and equals L for w = 1.
-    """
-    for i in range(indptr.size - 1):
+def cell_means(dofs, w, out):  # pragma: no cover
+    """out[c] = mean of w over the nodes of cell c (`dofs` (n_cells, n_dofs) local node indices)."""
+    nd = dofs.shape[1]
+    for c in range(dofs.shape[0]):
         s = 0.0
-        kd = -1
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            if j == i:
-                kd = k
-            else:
-                v = lap[k] * 0.5 * (w[i] + w[j])
-                out[k] = v
-                s += v
-        out[kd] = -s
+        for a in range(nd):
+            s += w[dofs[c, a]]
+        out[c] = s / nd
 
 
 @njit(cache=True)
-def apply_dirichlet_rows(indptr, indices, vals, x, keep, y):  # pragma: no cover
-    """Owned rows of y = A x, A the matrix `vals` with the Dirichlet rows and columns of L's solver.
-
-    A unit row where keep[i] == 0, and the columns with keep[j] == 0 dropped elsewhere (`x` extended).
-    """
-    for i in range(indptr.size - 1):
-        if keep[i] == 0.0:
-            y[i] = x[i]
-            continue
+def csr_weighted_sum(start, cell, value, wc, vals):  # pragma: no cover
+    """vals[e] = Σ_k wc[cell[k]] value[k] over start[e] <= k < start[e + 1]: the cells' entries of each CSR entry."""
+    for e in range(vals.size):
         s = 0.0
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            s += vals[k] * keep[j] * x[j]
-        y[i] = s
+        for k in range(start[e], start[e + 1]):
+            s += wc[cell[k]] * value[k]
+        vals[e] = s
+
+
+@njit(cache=True)
+def cell_products(dofs, K, wc, cells, x, y):  # pragma: no cover
+    """Products of the listed cells: y = Σ_m wc[c] K[m] x, c = cells[m], over the local nodes.
+
+    y is overwritten; the caller adds the ghost rows to their owners.
+    """
+    y[:] = 0.0
+    nd = dofs.shape[1]
+    xc = np.empty(nd)
+    for m in range(cells.size):
+        c = cells[m]
+        for b in range(nd):
+            xc[b] = x[dofs[c, b]]
+        for a in range(nd):
+            s = 0.0
+            for b in range(nd):
+                s += K[m, a, b] * xc[b]
+            y[dofs[c, a]] += wc[c] * s
 
 
 @njit(cache=True)

@@ -1,7 +1,7 @@
 """The pressure-increment Poisson solve: a constant stiffness matrix and its factorisation or AMG, set up once.
 
-(Optionally the operator is the drag-weighted Laplacian of each step, `_WeightedOperator`, still
-preconditioned by the constant matrix's AMG; `VANSParameters.drag_weighted_projection`.)
+(With the drag-weighted projection, the default for steps with a drag, the operator is instead L_w of each
+step, `febed.gas.weighted`, solved by CG preconditioned with the AMG of L_w of a recent step.)
 
 Following YALES2 (docs/theory.md, data flow, the gas step), the gas momentum carries −∇P and the particles −V_p∇P,
 so the operator of seed 001 eq 39 is the constant Laplacian L_ij = ∫ ∇φ_i·∇φ_j dx. It is assembled once,
@@ -29,7 +29,7 @@ import dolfinx.la
 import numpy as np
 import ufl
 
-from febed.gas import kernels
+from febed.gas.weighted import WeightedLaplacian
 
 # CG + smoothed-aggregation AMG (Trilinos ML through PETSc) with one smoothing sweep per level: the
 # fastest of hypre BoomerAMG (several settings), GAMG and ML on the seed-001 intermediate mesh with a
@@ -55,6 +55,16 @@ FALLBACK_OPTIONS = {"pc_type": "gamg", "pc_gamg_square_graph": 0}
 # and the drag-weighted projection keep CG + AMG.
 DIRECT_MAX_NODES = 50_000
 DIRECT_OPTIONS = {"ksp_type": "preonly", "pc_type": "cholesky"}
+# The drag-weighted solve (CG on L_w) is preconditioned by the AMG of L_w of a recent step, rebuilt after a solve
+# that needed more than this many iterations. With the AMG of the current L_w CG needs 2-4 iterations on the
+# seed-001 meshes; with the constant L's 9-10; one AMG setup costs about as much as 75 iterations.
+REFRESH_ITERATIONS = 8
+# The multigrid smoothers of the weighted solve use the assembled L_w (the preconditioner's matrix), not the
+# matrix-free operator: otherwise every smoothing sweep applies L_w cell by cell once more.
+# ML's default estimate of the spectral radius (power iteration from a random vector) draws on a random stream
+# shared by every ML setup of the process, so a preconditioner rebuilt after a restart would differ in the last
+# bits; the matrix-norm estimate makes each setup a function of its matrix alone.
+WEIGHTED_OPTIONS = {"pc_use_amat": "false", "pc_ml_SpectralNormScheme_Anorm": "true"}
 
 
 _DEFAULTS_WRITTEN: set[str] = set()  # option names febed (not the user) put into PETSc's options database
@@ -77,54 +87,18 @@ class PressureSolveError(RuntimeError):
     """The pressure Poisson solve did not converge (raised on every rank: the solve is collective)."""
 
 
-class _WeightedOperator:
-    """PETSc Python-matrix context: the edge-weighted Laplacian L_w (`kernels.weighted_laplacian`).
-
-    It has L's Dirichlet rows (unit) and columns (dropped) and is applied with the CSR rows of `NodalOperators`.
-    """
-
-    def __init__(self, ops, dirichlet_dofs: np.ndarray):
-        self.ops = ops
-        self.vals = ops.laplacian.copy()
-        imap = ops.Q.dofmap.index_map
-        self.xg = dolfinx.la.create_petsc_vector(imap, 1)
-        self.xl = np.empty(ops.n_local)
-        keep = dolfinx.la.create_petsc_vector(imap, 1)
-        with keep.localForm() as loc:
-            loc.set(1.0)
-            loc.array[np.asarray(dirichlet_dofs, dtype=np.int64)] = 0.0
-        keep.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        with keep.localForm() as loc:
-            local = loc.array.copy()
-        self.keep = ops.extension.extend("keep", keep, local).copy()
-        keep.destroy()
-
-    def set_weights(self, w_ext: np.ndarray) -> None:
-        kernels.weighted_laplacian(self.ops.indptr, self.ops.indices, self.ops.laplacian, w_ext, self.vals)
-
-    def extended(self, x: PETSc.Vec) -> np.ndarray:
-        """The values of `x` (owned) over the owned, ghost and extra columns (collective)."""
-        self.xg.array[:] = x.array_r
-        self.xg.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        with self.xg.localForm() as loc:
-            self.xl[:] = loc.array_r
-        return self.ops.extension.extend("weighted", self.xg, self.xl)
-
-    def mult(self, mat, x, y):  # PETSc callback: y = A_w x
-        kernels.apply_dirichlet_rows(self.ops.indptr, self.ops.indices, self.vals, self.extended(x), self.keep, y.array)
-
-
 class PressureSolver:
     """Solve L φ = b for the scaled pressure increment φ = Δt δP / ρ, b given on the owned nodes.
 
-    With `ops` (the gas step's `NodalOperators`) the operator can be the drag-weighted Laplacian instead
-    (`set_weights`), solved by CG preconditioned with the constant L's AMG, which is still set up once.
+    With `weighted` the solver can also solve the drag-weighted Laplacian L_w of the weights last given to
+    `set_weights` (`febed.gas.weighted`): CG preconditioned by the AMG of L_w assembled at a recent step.
     """
 
-    def __init__(self, Q, dirichlet_dofs: np.ndarray, has_dirichlet: bool, prefix: str, ops=None):
+    def __init__(self, Q, dirichlet_dofs: np.ndarray, has_dirichlet: bool, prefix: str, weighted: bool = False):
         comm = Q.mesh.comm
         v, w = ufl.TestFunction(Q), ufl.TrialFunction(Q)
         bcs = [dolfinx.fem.dirichletbc(PETSc.ScalarType(0.0), dirichlet_dofs, Q)] if has_dirichlet else []
+        self.Q = Q
         self.A = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(ufl.inner(ufl.grad(w), ufl.grad(v)) * ufl.dx), bcs)
         self.A.assemble()
         self.nullspace = None
@@ -140,7 +114,6 @@ class PressureSolver:
         direct = (
             comm.size == 1
             and has_dirichlet
-            and ops is None
             and imap.size_global <= DIRECT_MAX_NODES
             and not any(_user_set(opts, name) for name in opts.getAll() if name.startswith(prefix))
         )  # any option of the user's for this solver (a type, a tolerance, ...) asks for the iterative one
@@ -149,17 +122,7 @@ class PressureSolver:
             _write_defaults(opts, prefix, defaults)
         self.ksp = PETSc.KSP().create(comm)
         self.ksp.setOptionsPrefix(prefix)
-        self.weighted = None
-        self.op = self.A  # the operator of the solve
-        if ops is not None:
-            self.weighted = _WeightedOperator(ops, dirichlet_dofs)
-            n, N = imap.size_local, imap.size_global
-            self.op = PETSc.Mat().createPython(((n, N), (n, N)), context=self.weighted, comm=comm)
-            self.op.setUp()
-            if self.nullspace is not None:
-                self.op.setNullSpace(self.nullspace)
         self.ksp.setOperators(self.A)
-        self._current = self.A
         try:
             self.ksp.setFromOptions()
         except PETSc.Error:
@@ -174,15 +137,62 @@ class PressureSolver:
         self.user_pc = user_pc
         self.fallbacks = 0  # times a failed preconditioner setup was replaced by the fallback (`solve`)
         self._iterative_settings(opts)
-        if self.weighted is not None and self.ksp.getType() == PETSc.KSP.Type.PREONLY:
-            raise ValueError(
-                "gas.drag_weighted_projection needs an iterative pressure solver: the PETSc options set "
-                f"-{prefix}ksp_type preonly (one preconditioner application solves the constant Laplacian, not "
-                "the weighted one); remove it or set drag_weighted_projection = false"
-            )
         self.ksp.setUp()
         self.setup_count = 1  # the preconditioner's matrix never changes: PETSc reuses this setup in every solve
         self.comm = comm
+        self._last = self.ksp  # the solver of the last solve
+        self.weighted = None  # the drag-weighted operator and its CG solver (`set_weights`)
+        if weighted:
+            self._set_up_weighted(dirichlet_dofs)
+
+    def _set_up_weighted(self, dirichlet_dofs: np.ndarray) -> None:
+        """CG on L_w of the step, preconditioned by the AMG of L_w of a recent step (`_refresh`)."""
+        self.weighted = WeightedLaplacian(self.Q, dirichlet_dofs)
+        self._pc_vals = np.zeros_like(self.weighted.vals)
+        self.Pw = self.weighted.matrix(self._pc_vals)  # the preconditioner's matrix: L_w of `pc_weights`
+        if self.nullspace is not None:
+            self.weighted.A.setNullSpace(self.nullspace)
+            self.Pw.setNullSpace(self.nullspace)
+        self.pc_weights = None  # the nodal weights (owned nodes) the preconditioner was built for
+        self._w_local = None  # the nodal weights of the current step (`set_weights`)
+        opts = PETSc.Options()
+        defaults = DEFAULT_OPTIONS if self.comm.size == 1 else {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS}
+        _write_defaults(opts, self.prefix + "weighted_", {**defaults, **WEIGHTED_OPTIONS})
+        self.ksp_w = self._weighted_ksp()
+        self.pc_setups = 0  # preconditioner builds of the weighted solve
+
+    def _weighted_ksp(self) -> PETSc.KSP:
+        """A new CG solver of L_w (options under the prefix ..._weighted_), its preconditioner not yet built."""
+        prefix = self.prefix + "weighted_"
+        ksp = PETSc.KSP().create(self.comm)
+        ksp.setOptionsPrefix(prefix)
+        ksp.setOperators(self.weighted.A, self.Pw)
+        ksp.setFromOptions()
+        ksp.setInitialGuessNonzero(True)
+        if not PETSc.Options().hasName(prefix + "ksp_norm_type"):
+            ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        if ksp.getType() == PETSc.KSP.Type.PREONLY:
+            raise ValueError(
+                f"gas.drag_weighted_projection needs an iterative pressure solver: -{prefix}ksp_type preonly "
+                "applies a preconditioner built for an earlier step once; remove it"
+            )
+        return ksp
+
+    def _refresh(self) -> None:
+        """Build the weighted solve's preconditioner from L_w of the current weights, kept for later steps.
+
+        Each build is a new solver object, so that the preconditioner depends on its matrix alone (an AMG set
+        up again in place keeps traces of its earlier setups) and a restart rebuilds it bit for bit (collective).
+        """
+        self._pc_vals[:] = self.weighted.vals
+        self.weighted.load(self.Pw, self._pc_vals)
+        if self.pc_setups > 0:
+            self.ksp_w.destroy()
+            self.ksp_w = self._weighted_ksp()
+        self.ksp_w.setUp()
+        self.ksp_w.getPC().setReusePreconditioner(True)  # kept until the next refresh, however L_w changes
+        self.pc_weights = self._w_local[: self.Q.dofmap.index_map.size_local].copy()
+        self.pc_setups += 1
 
     def _iterative_settings(self, opts) -> None:
         """Warm start and true-residual tolerances for an iterative solve (unless the user set the norm)."""
@@ -198,7 +208,7 @@ class PressureSolver:
         failed, self.ksp = self.ksp, PETSc.KSP().create(self.comm)  # a new solver: PETSc keeps the failure
         failed.destroy()
         self.ksp.setOptionsPrefix(self.prefix)
-        self.ksp.setOperators(self._current, self.A)
+        self.ksp.setOperators(self.A)
         self.ksp.setFromOptions()
         self._iterative_settings(opts)
         self.ksp.setUp()
@@ -206,9 +216,10 @@ class PressureSolver:
         self.fallbacks += 1
         self.x.set(0.0)
 
-    def set_weights(self, w_ext: np.ndarray) -> None:
-        """Make the operator the edge-weighted Laplacian L_w for the weights `w_ext` (extended nodal array)."""
-        self.weighted.set_weights(w_ext)
+    def set_weights(self, w_local: np.ndarray) -> None:
+        """Make the weighted operator L_w for the nodal weights `w_local` (owned and ghost nodes)."""
+        self.weighted.set_weights(w_local)
+        self._w_local = w_local
 
     def solve(self, rhs_owned: np.ndarray, rtol: float, atol: float, weighted: bool = False) -> tuple[np.ndarray, int]:
         """Write b (owned rows), zero the pressure rows, solve from the last φ; φ over local dofs, iterations.
@@ -216,38 +227,47 @@ class PressureSolver:
         Converged when the true residual ||b − Lφ||_2 ≤ max(rtol ||b||_2, atol); L is the weighted operator
         of the last `set_weights` if `weighted` (collective: the same on every rank).
         """
-        op = self.op if weighted else self.A
-        if op is not self._current:
-            self.ksp.setOperators(op, self.A)  # the preconditioner stays the constant L's: no new setup
-            self._current = op
-        self.ksp.setTolerances(rtol=rtol, atol=atol)
+        if weighted and self.pc_weights is None:
+            self._refresh()
+        self._last = self.ksp_w if weighted else self.ksp
         self.b.array[:] = rhs_owned
         self.b.array[self.bc_rows] = 0.0
         if self.nullspace is not None:
             self.nullspace.remove(self.b)
-        self.ksp.solve(self.b, self.x)
-        reason = self.ksp.getConvergedReason()
+        # no divergence test: a warm start far from a tiny right-hand side (a nearly steady step) is not divergence
+        self._last.setTolerances(rtol=rtol, atol=atol, divtol=1e300)
+        self._last.solve(self.b, self.x)
+        reason = self._last.getConvergedReason()
         if reason == PETSc.KSP.ConvergedReason.DIVERGED_PCSETUP_FAILED and not self.user_pc and self.fallbacks == 0:
             # the default preconditioner's setup failed (seen rarely with ML on a closed domain's singular L):
             # the same solve with GAMG; a preconditioner the user chose is the user's to change
             self._fall_back()
-            self.ksp.setTolerances(rtol=rtol, atol=atol)
-            self.ksp.solve(self.b, self.x)
-            reason = self.ksp.getConvergedReason()
+            self._last = self.ksp_w if weighted else self.ksp
+            self._last.setTolerances(rtol=rtol, atol=atol, divtol=1e300)
+            self._last.solve(self.b, self.x)
+            reason = self._last.getConvergedReason()
         if reason < 0:
             raise PressureSolveError(
                 f"the pressure solve did not converge (PETSc KSP reason {reason}) after "
-                f"{self.ksp.getIterationNumber()} iterations; check the time step and the void fraction"
+                f"{self._last.getIterationNumber()} iterations; check the time step and the void fraction"
             )
+        its = self._last.getIterationNumber()
+        if weighted and its > REFRESH_ITERATIONS:  # for the next step: the preconditioner of this step's L_w
+            self._refresh()
         self.x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         with self.x.localForm() as loc:
             phi = loc.array.copy()
-        return phi, self.ksp.getIterationNumber()
+        return phi, its
+
+    def restore_preconditioner(self, w_local: np.ndarray) -> None:
+        """Build the weighted solve's preconditioner for the nodal weights of a checkpoint (`pc_weights`)."""
+        self.set_weights(w_local)
+        self._refresh()
 
     def residual_sum(self) -> float:
         """Global Σ_i (b − L φ)_i over non-pressure rows: the discrete continuity defect of the last solve."""
         r = self.b.duplicate()
-        self._current.mult(self.x, r)
+        self._last.getOperators()[0].mult(self.x, r)
         r.aypx(-1.0, self.b)
         r.array[self.bc_rows] = 0.0
         s = self.comm.allreduce(float(r.array.sum()), op=MPI.SUM)
@@ -259,5 +279,6 @@ class PressureSolver:
         for obj in (self.ksp, self.A, self.b, self.x):
             obj.destroy()
         if self.weighted is not None:
-            self.op.destroy()
-            self.weighted.xg.destroy()
+            for obj in (self.ksp_w, self.Pw):
+                obj.destroy()
+            self.weighted.destroy()

@@ -155,8 +155,10 @@ def test_drag_weighted_projection_gives_darcys_pressure_in_one_step():
             assert abs(info.mass_imbalance) < 1e-6 * RHO * info.inflow
 
 
-def test_drag_weighted_projection_refuses_a_one_shot_pressure_solve():
-    # a direct solve of the constant Laplacian (ksp_type preonly) cannot solve the weighted operator
+def test_drag_weighted_projection_refuses_a_one_shot_weighted_solve():
+    # the weighted solve has options of its own (prefix ..._pressure_weighted_): a direct factorisation of the
+    # constant Laplacian is fine beside it, but a one-shot (preonly) weighted solve would apply a preconditioner
+    # built at an earlier step once, and is refused with the option's name
     from petsc4py import PETSc
 
     from febed.gas.vans import apply_petsc_options
@@ -164,12 +166,16 @@ def test_drag_weighted_projection_refuses_a_one_shot_pressure_solve():
     apply_petsc_options("-febedpreonly_pressure_ksp_type preonly -febedpreonly_pressure_pc_type lu")
     try:
         md = channel(0.1, 0.02, 10, 2)
-        with pytest.raises(ValueError, match="drag_weighted_projection needs an iterative pressure solver"):
-            channel_solver(md, U, drag_weighted_projection=True, prefix="febedpreonly_")
-        channel_solver(md, U, prefix="febedpreonly_")  # the plain projection takes it
+        s = channel_solver(md, U, rho=RHO, mu=MU, eps=EPS, drag_weighted_projection=True, prefix="febedpreonly_")
+        info = s.step(1e-4, K=1e4)
+        assert abs(info.mass_imbalance) < 1e-6 * RHO * info.inflow
+        apply_petsc_options("-febedpreonlyw_pressure_weighted_ksp_type preonly")
+        with pytest.raises(ValueError, match="febedpreonlyw_pressure_weighted_ksp_type preonly"):
+            channel_solver(md, U, drag_weighted_projection=True, prefix="febedpreonlyw_")
     finally:
-        for key in ("ksp_type", "pc_type"):
-            PETSc.Options().delValue("febedpreonly_pressure_" + key)
+        for key in ("febedpreonly_pressure_ksp_type", "febedpreonly_pressure_pc_type"):
+            PETSc.Options().delValue(key)
+        PETSc.Options().delValue("febedpreonlyw_pressure_weighted_ksp_type")
 
 
 @pytest.mark.mpi
