@@ -275,7 +275,13 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "pressure_rtol": Param(
             1e-8, "", "Poisson relative tolerance when no gas flows in", float, lo=0.0, lo_open=True
         ),
-        "petsc_options": Param("", "-", "PETSc options for the gas solves, e.g. '-febed_pressure_pc_type gamg'", str),
+        "petsc_options": Param(
+            "",
+            "-",
+            "PETSc options for the gas solves, e.g. '-febed_pressure_weighted_pc_type gamg' (the drag-weighted "
+            "pressure solve) or '-febed_pressure_pc_type gamg' (the constant-Laplacian one)",
+            str,
+        ),
         "void_fraction": Param(
             1.0, "", "gas-only mode: uniform void fraction of the porous medium", float, lo=0.0, lo_open=True, hi=1.0
         ),
