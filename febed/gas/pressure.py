@@ -56,8 +56,8 @@ FALLBACK_OPTIONS = {"pc_type": "gamg", "pc_gamg_square_graph": 0}
 DIRECT_MAX_NODES = 50_000
 DIRECT_OPTIONS = {"ksp_type": "preonly", "pc_type": "cholesky"}
 # The drag-weighted solve (CG on L_w) is preconditioned by the AMG of L_w of a recent step, rebuilt after a solve
-# that needed more than this many iterations. With the AMG of the current L_w CG needs 2-4 iterations on the
-# seed-001 meshes; with the constant L's 9-10; one AMG setup costs about as much as 75 iterations.
+# that needed more than this many iterations. With the AMG of the current L_w CG needs 4-6 iterations on the
+# seed-001 meshes, with the constant L's 9-10; one AMG setup costs about as much as 60 iterations.
 REFRESH_ITERATIONS = 8
 # The multigrid smoothers of the weighted solve use the assembled L_w (the preconditioner's matrix), not the
 # matrix-free operator: otherwise every smoothing sweep applies L_w cell by cell once more.
@@ -158,7 +158,8 @@ class PressureSolver:
         opts = PETSc.Options()
         defaults = DEFAULT_OPTIONS if self.comm.size == 1 else {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS}
         _write_defaults(opts, self.prefix + "weighted_", {**defaults, **WEIGHTED_OPTIONS})
-        self.ksp_w = self._weighted_ksp()
+        self.user_pc_w = _user_set(opts, self.prefix + "weighted_pc_type")
+        self.ksp_w = self._weighted_ksp()  # checks the options now; `_refresh` makes a new one for each build
         self.pc_setups = 0  # preconditioner builds of the weighted solve
 
     def _weighted_ksp(self) -> PETSc.KSP:
@@ -186,9 +187,8 @@ class PressureSolver:
         """
         self._pc_vals[:] = self.weighted.vals
         self.weighted.load(self.Pw, self._pc_vals)
-        if self.pc_setups > 0:
-            self.ksp_w.destroy()
-            self.ksp_w = self._weighted_ksp()
+        self.ksp_w.destroy()
+        self.ksp_w = self._weighted_ksp()
         self.ksp_w.setUp()
         self.ksp_w.getPC().setReusePreconditioner(True)  # kept until the next refresh, however L_w changes
         self.pc_weights = self._w_local[: self.Q.dofmap.index_map.size_local].copy()
@@ -201,9 +201,16 @@ class PressureSolver:
             if not opts.hasName(self.prefix + "ksp_norm_type"):
                 self.ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)  # tolerances on the true residual
 
-    def _fall_back(self) -> None:
+    def _fall_back(self, weighted: bool) -> None:
         """Replace a preconditioner whose setup failed by CG + GAMG (`FALLBACK_OPTIONS`), from φ = 0 (collective)."""
         opts = PETSc.Options()
+        self.fallbacks += 1
+        self.x.set(0.0)
+        if weighted:
+            fallback = {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS, **WEIGHTED_OPTIONS}
+            _write_defaults(opts, self.prefix + "weighted_", fallback)
+            self._refresh()
+            return
         _write_defaults(opts, self.prefix, {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS})
         failed, self.ksp = self.ksp, PETSc.KSP().create(self.comm)  # a new solver: PETSc keeps the failure
         failed.destroy()
@@ -213,8 +220,6 @@ class PressureSolver:
         self._iterative_settings(opts)
         self.ksp.setUp()
         self.setup_count += 1
-        self.fallbacks += 1
-        self.x.set(0.0)
 
     def set_weights(self, w_local: np.ndarray) -> None:
         """Make the weighted operator L_w for the nodal weights `w_local` (owned and ghost nodes)."""
@@ -238,10 +243,11 @@ class PressureSolver:
         self._last.setTolerances(rtol=rtol, atol=atol, divtol=1e300)
         self._last.solve(self.b, self.x)
         reason = self._last.getConvergedReason()
-        if reason == PETSc.KSP.ConvergedReason.DIVERGED_PCSETUP_FAILED and not self.user_pc and self.fallbacks == 0:
+        user_pc = self.user_pc_w if weighted else self.user_pc
+        if reason == PETSc.KSP.ConvergedReason.DIVERGED_PCSETUP_FAILED and not user_pc and self.fallbacks == 0:
             # the default preconditioner's setup failed (seen rarely with ML on a closed domain's singular L):
             # the same solve with GAMG; a preconditioner the user chose is the user's to change
-            self._fall_back()
+            self._fall_back(weighted)
             self._last = self.ksp_w if weighted else self.ksp
             self._last.setTolerances(rtol=rtol, atol=atol, divtol=1e300)
             self._last.solve(self.b, self.x)

@@ -122,3 +122,23 @@ def test_a_failed_user_preconditioner_is_reported_not_replaced():
         s.destroy()
     finally:
         opts.delValue("febed_test_userlu_pc_type")
+
+
+def test_a_failed_default_preconditioner_of_the_weighted_solve_falls_back_to_gamg(monkeypatch):
+    """The same for the drag-weighted solve (its own prefix): a singular L_w whose default factorisation fails."""
+    Q, _ = _space(6)
+    b = _rhs(Q)
+    b -= b.mean()
+    n_local = Q.dofmap.index_map.size_local + Q.dofmap.index_map.num_ghosts
+    w = np.linspace(0.2, 1.0, n_local)
+    monkeypatch.setattr(pressure, "DEFAULT_OPTIONS", {"ksp_type": "cg", "pc_type": "lu"})  # fails as ML may
+    s = PressureSolver(Q, np.zeros(0, dtype=np.int32), False, "febed_test_wfallback_", weighted=True)
+    s.set_weights(w)
+    phi, its = s.solve(b, 1e-10, 1e-300, weighted=True)
+    assert s.fallbacks == 1 and s.ksp_w.getPC().getType() == "gamg" and its > 0
+    r = s.weighted.A.createVecs()[1]
+    x = r.duplicate()
+    x.array[:] = phi[: x.array.size]
+    s.weighted.A.mult(x, r)
+    assert np.max(np.abs(r.array - b[: r.array.size])) <= 1e-8 * np.max(np.abs(b))
+    s.destroy()
