@@ -104,7 +104,7 @@ def pack(workdir: Path) -> None:
     np.savez_compressed(BED, **data)
 
 
-def dp_ratio(cells: int, walls: dict, workdir: Path, steps: int = 400) -> tuple[float, float]:
+def dp_ratio(cells: int, walls: dict, workdir: Path, steps: int = 1000) -> tuple[float, float]:
     """(−dp/dz over the middle half of the bed) / Ergun at the slab's measured ε, and that ε."""
     case = load_case(data=case_data(cells, walls, workdir / f"run{cells}"))
     md = load_case_mesh(case, cache_dir=workdir / "mesh")
