@@ -115,7 +115,11 @@ class PressureSolver:
             comm.size == 1
             and has_dirichlet
             and imap.size_global <= DIRECT_MAX_NODES
-            and not any(_user_set(opts, name) for name in opts.getAll() if name.startswith(prefix))
+            and not any(
+                _user_set(opts, name)
+                for name in opts.getAll()
+                if name.startswith(prefix) and not name.startswith(prefix + "weighted_")
+            )
         )  # any option of the user's for this solver (a type, a tolerance, ...) asks for the iterative one
         if not direct:
             defaults = DEFAULT_OPTIONS if comm.size == 1 else {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS}

@@ -54,7 +54,15 @@ def test_direct_and_iterative_agree_and_options_do_not_leak(monkeypatch):
     monkeypatch.setattr(pressure, "DIRECT_MAX_NODES", 50_000)
     again = PressureSolver(Q, dofs, True, "febed_test_direct_")
     assert (again.ksp.getType() == PETSc.KSP.Type.PREONLY) == expect_direct
-    for s in (direct, cg, again):
+    # an option of the user's for the drag-weighted solve (its own prefix) leaves the constant one factorised
+    opts = PETSc.Options()
+    opts["febed_test_direct_weighted_ksp_rtol"] = "1e-9"
+    try:
+        weighted = PressureSolver(Q, dofs, True, "febed_test_direct_", weighted=True)
+        assert (weighted.ksp.getType() == PETSc.KSP.Type.PREONLY) == expect_direct
+    finally:
+        opts.delValue("febed_test_direct_weighted_ksp_rtol")
+    for s in (direct, cg, again, weighted):
         s.destroy()
 
 
