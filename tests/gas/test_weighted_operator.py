@@ -27,8 +27,19 @@ def distorted_mesh(cell: str):
     return mesh
 
 
-def owned_values(ops, vec: PETSc.Vec) -> np.ndarray:
-    return vec.array_r[: ops.n_owned].copy()
+def operator(cell: str):
+    """The nodal operators of the distorted mesh of `cell`s and its weighted operator without Dirichlet nodes."""
+    ops = build_operators(distorted_mesh(cell))
+    return ops, weighted.WeightedLaplacian(ops.Q, np.zeros(0, dtype=np.int32))
+
+
+def ghosted(ops, owned: np.ndarray) -> np.ndarray:
+    """`owned` values (a PETSc vector's array) over the owned and ghost nodes."""
+    v = dolfinx.la.create_petsc_vector(ops.Q.dofmap.index_map, 1)
+    v.array[:] = owned
+    v.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+    with v.localForm() as loc:
+        return ops.extension.extend("test", v, loc.array.copy()).copy()
 
 
 @pytest.mark.mpi
@@ -36,20 +47,14 @@ def owned_values(ops, vec: PETSc.Vec) -> np.ndarray:
 def test_unit_weights_give_the_assembled_laplacian(cell):
     # with w = 1 and no Dirichlet nodes, L_w x is DOLFINx's own stiffness matrix times x, to round-off: the
     # element matrices, their quadrature and the ghost rows summed into their owners agree with the assembly
-    mesh = distorted_mesh(cell)
-    ops = build_operators(mesh)
-    op = weighted.WeightedLaplacian(ops.Q, np.zeros(0, dtype=np.int32))
+    ops, op = operator(cell)
     op.set_weights(np.ones(ops.n_local))
     x = op.A.createVecs()[0]
     x.array[:] = np.random.default_rng(MPI.COMM_WORLD.rank).random(x.array.size)
     y = op.A.createVecs()[1]
     op.A.mult(x, y)
     # reference: the owned CSR rows of ∫∇φ_i·∇φ_j dx (febed.gas.operators) applied to x over the extended columns
-    xg = dolfinx.la.create_petsc_vector(ops.Q.dofmap.index_map, 1)
-    xg.array[:] = x.array_r
-    xg.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-    with xg.localForm() as loc:
-        x_ext = ops.extension.extend("x", xg, loc.array.copy())
+    x_ext = ghosted(ops, x.array_r)
     rows = zip(ops.indptr[:-1], ops.indptr[1:], strict=True)
     ref = np.array([ops.laplacian[a:b] @ x_ext[ops.indices[a:b]] for a, b in rows])
     err = MPI.COMM_WORLD.allreduce(float(np.abs(y.array_r - ref).max(initial=0.0)), op=MPI.MAX)
@@ -64,15 +69,9 @@ def test_weighted_operator_is_symmetric_positive_semidefinite_with_zero_row_sums
     # weights spanning four decades (a packed bed beside clear gas, wall nodes): x·L_w y = y·L_w x, L_w 1 = 0,
     # and x·L_w x >= 0 for random x (an edge-by-edge weighting of L, used before, made CG stop on an indefinite
     # operator in the tetrahedral pseudo-2D bed of test_bed3d.py)
-    mesh = distorted_mesh(cell)
-    ops = build_operators(mesh)
-    op = weighted.WeightedLaplacian(ops.Q, np.zeros(0, dtype=np.int32))
+    ops, op = operator(cell)
     rng = np.random.default_rng(7 + MPI.COMM_WORLD.rank)
-    w = dolfinx.la.create_petsc_vector(ops.Q.dofmap.index_map, 1)
-    w.array[:] = 10.0 ** rng.uniform(-4.0, 0.0, w.array.size)
-    w.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-    with w.localForm() as loc:
-        op.set_weights(loc.array.copy())
+    op.set_weights(ghosted(ops, 10.0 ** rng.uniform(-4.0, 0.0, ops.n_owned))[: ops.n_local])
     x, y = op.A.createVecs()
     ax, ay = op.A.createVecs()
     one, row_sums = op.A.createVecs()
