@@ -28,6 +28,7 @@ import numpy as np
 import ufl
 
 from febed.gas import kernels
+from febed.gas.petsc_coo import coo_matrix
 
 # quadrature degree of the element matrices: DOLFINx's own estimate for ∫∇φ_i·∇φ_j dx on degree-1 geometry
 # (tests/gas/test_weighted_operator.py checks L_w for w = 1 against the assembled L on every cell type)
@@ -80,8 +81,9 @@ class WeightedLaplacian:
 
     `set_weights` takes the nodal weights over the local (owned and ghost) nodes and writes `vals`, L_w in the
     local CSR of the cells' entries (one compiled pass over the entries in CSR order). On one process the
-    PETSc matrix `A` is built on `vals` itself; on several, `vals` is added into it and its assembly sends
-    the ghost rows to their owners. `matrix(vals)` makes another such matrix (the preconditioner's).
+    PETSc matrix `A` is built on `vals` itself; on several, `vals` are its COO entries (`febed.gas.petsc_coo`:
+    PETSc sums them and sends the ghost rows to their owners by a plan made once). `matrix(vals)` makes
+    another such matrix (the preconditioner's).
     `pressure_rows_product` is (L_w x)_i at the Dirichlet (pressure) rows without the modification, over
     the cells that touch them (the mass balance reads it).
     """
@@ -109,6 +111,9 @@ class WeightedLaplacian:
         self.bc_K = np.ascontiguousarray(K[self.bc_cells])
         u, v = ufl.TrialFunction(Q), ufl.TestFunction(Q)
         self.form = dolfinx.fem.form(ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx)  # L's sparsity (several ranks)
+        l2g = imap.local_to_global(np.arange(n_local, dtype=np.int32))
+        self._global_entries = (l2g[rows], l2g[self.cols])  # each local CSR entry's global row and column
+        self._coo = {}  # the COO fill of each matrix made on several ranks, by its handle
         self.A = self.matrix(self.vals)
         self.yg = dolfinx.la.create_petsc_vector(imap, 1)
 
@@ -117,7 +122,12 @@ class WeightedLaplacian:
         if self.comm.size == 1:
             n = self.indptr.size - 1
             return PETSc.Mat().createAIJWithArrays((n, n), (self.indptr, self.cols, vals), comm=PETSc.COMM_SELF)
-        return dolfinx.fem.petsc.create_matrix(self.form)
+        coo = coo_matrix(self.comm, self.n_owned, *self._global_entries)
+        if coo is None:  # a PETSc without COO assembly: L's pattern from DOLFINx, filled row by row (`load`)
+            return dolfinx.fem.petsc.create_matrix(self.form)
+        self._coo[coo.M.handle] = coo
+        coo.fill(vals)
+        return coo.M
 
     def set_weights(self, w_local: np.ndarray) -> None:
         """Cell weights w_c from the nodal weights (owned and ghost nodes); `A` = L_w (collective)."""
@@ -129,6 +139,10 @@ class WeightedLaplacian:
 
     def load(self, M: PETSc.Mat, vals: np.ndarray) -> None:
         """Make M (from `matrix(vals)`) hold `vals` after they changed (collective)."""
+        coo = self._coo.get(M.handle)
+        if coo is not None:  # sums the entries and sends the ghost rows to their owners
+            coo.fill(vals)
+            return
         if self.comm.size > 1:
             M.zeroEntries()
             M.setValuesLocalCSR(self.indptr, self.cols, vals, addv=PETSc.InsertMode.ADD)
