@@ -65,6 +65,11 @@ REFRESH_ITERATIONS = 8
 # shared by every ML setup of the process, so a preconditioner rebuilt after a restart would differ in the last
 # bits; the matrix-norm estimate makes each setup a function of its matrix alone.
 WEIGHTED_OPTIONS = {"pc_use_amat": "false", "pc_ml_SpectralNormScheme_Anorm": "true"}
+# One process, a pressure outlet and at most this many nodes: the weighted solve's preconditioner is the
+# Cholesky factorisation of L_w of a recent step instead of its AMG. On seed 000's 2D bed (1,919 nodes) a
+# solve then costs 0.77 instead of 1.14 ms and the factor is rebuilt less often (the gas step 12 % less,
+# benchmarks/coarse.py's TM l = 2 run); on the 7,000-node coarse pseudo-2D mesh both cost the same.
+WEIGHTED_DIRECT_MAX_NODES = 5_000
 
 
 _DEFAULTS_WRITTEN: set[str] = set()  # option names febed (not the user) put into PETSc's options database
@@ -161,6 +166,9 @@ class PressureSolver:
         self._w_local = None  # the nodal weights of the current step (`set_weights`)
         opts = PETSc.Options()
         defaults = DEFAULT_OPTIONS if self.comm.size == 1 else {**DEFAULT_OPTIONS, **FALLBACK_OPTIONS}
+        small = self.Q.dofmap.index_map.size_global <= WEIGHTED_DIRECT_MAX_NODES
+        if self.comm.size == 1 and self.nullspace is None and small:
+            defaults = {**defaults, "pc_type": "cholesky"}
         _write_defaults(opts, self.prefix + "weighted_", {**defaults, **WEIGHTED_OPTIONS})
         self.user_pc_w = _user_set(opts, self.prefix + "weighted_pc_type")
         self.ksp_w = self._weighted_ksp()  # checks the options now; `_refresh` makes a new one for each build

@@ -150,3 +150,28 @@ def test_a_failed_default_preconditioner_of_the_weighted_solve_falls_back_to_gam
     s.weighted.A.mult(x, r)
     assert np.max(np.abs(r.array - b[: r.array.size])) <= 1e-8 * np.max(np.abs(b))
     s.destroy()
+
+
+@pytest.mark.mpi
+def test_small_serial_meshes_precondition_the_weighted_solve_by_cholesky(monkeypatch):
+    # on one process with an outlet and few nodes the weighted solve's preconditioner is the Cholesky factor
+    # of L_w, elsewhere its AMG; both solve the same weighted problem to the tolerance
+    comm = MPI.COMM_WORLD
+    Q, dofs = _space()
+    b = _rhs(Q)
+    imap = Q.dofmap.index_map
+    n = imap.size_local
+    w = 0.05 + (imap.local_to_global(np.arange(n + imap.num_ghosts, dtype=np.int32)) % 7) / 7.0
+    phis = []
+    for limit in (5_000, 0):
+        monkeypatch.setattr(pressure, "WEIGHTED_DIRECT_MAX_NODES", limit)
+        s = PressureSolver(Q, dofs, True, "febed_test_wdirect_", weighted=True)
+        s.set_weights(w)
+        phi, its = s.solve(b, 1e-12, 1e-300, weighted=True)
+        expect = "cholesky" if comm.size == 1 and limit else ("ml" if comm.size == 1 else "gamg")
+        assert s.ksp_w.getPC().getType() == expect and its >= 1
+        phis.append(phi[:n])
+        s.destroy()
+    err = comm.allreduce(float(np.max(np.abs(phis[0] - phis[1]), initial=0.0)), op=MPI.MAX)
+    scale = comm.allreduce(float(np.max(np.abs(phis[1]), initial=0.0)), op=MPI.MAX)
+    assert err <= 1e-9 * scale
