@@ -27,19 +27,24 @@ def _library():
     global _LIB
     if _LIB is None:
         _LIB = False
+        paths = []
         try:
-            with open("/proc/self/maps") as f:
-                paths = {line.split()[-1] for line in f if "libpetsc" in line and ".so" in line}
-            for path in sorted(paths):
-                lib = ctypes.CDLL(path)
-                if hasattr(lib, "MatSetPreallocationCOO") and hasattr(lib, "MatSetValuesCOO"):
-                    lib.MatSetPreallocationCOO.argtypes = [ctypes.c_void_p, ctypes.c_ssize_t]
-                    lib.MatSetPreallocationCOO.argtypes += [ctypes.c_void_p, ctypes.c_void_p]
-                    lib.MatSetValuesCOO.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
-                    _LIB = lib
-                    break
+            with open("/proc/self/maps") as f:  # the libraries loaded (Linux)
+                paths = sorted({line.split()[-1] for line in f if "libpetsc" in line and ".so" in line})
         except OSError:
             pass
+        paths.append(PETSc.__file__)  # a petsc4py linked statically against PETSc
+        for path in paths:
+            try:
+                lib = ctypes.CDLL(path)
+            except OSError:
+                continue
+            if hasattr(lib, "MatSetPreallocationCOO") and hasattr(lib, "MatSetValuesCOO"):
+                lib.MatSetPreallocationCOO.argtypes = [ctypes.c_void_p, ctypes.c_ssize_t]
+                lib.MatSetPreallocationCOO.argtypes += [ctypes.c_void_p, ctypes.c_void_p]
+                lib.MatSetValuesCOO.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+                _LIB = lib
+                break
     return _LIB or None
 
 
@@ -72,6 +77,6 @@ class COOMatrix:
 
 def coo_matrix(comm, n_owned: int, rows: np.ndarray, cols: np.ndarray) -> COOMatrix | None:
     """A `COOMatrix` over the given global entries, or None if this PETSc offers no COO assembly (collective)."""
-    lib = _library()
+    lib = _library() if PETSc.Sys.getVersion() >= (3, 18, 0) else None  # the signatures used here
     ok = comm.allreduce(lib is not None, op=MPI.LAND)
     return COOMatrix(comm, n_owned, rows, cols, lib) if ok else None
