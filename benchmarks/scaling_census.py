@@ -118,9 +118,13 @@ def node_census(mesh: HexGrid, owner: np.ndarray, nparts: int) -> dict[str, np.n
 
 
 class HaloBins:
-    """febed's ghost rule for a partition: per part, the bins its inflated owned cells overlap."""
+    """febed's ghost rule for a partition: per part, the bins its inflated owned cells overlap.
 
-    def __init__(self, mesh: HexGrid, owner: np.ndarray, nparts: int, width: float):
+    `part_boxes` (nparts, 2, 3) replaces the owned cells by one box per part (a decomposition of the
+    particles that does not follow the cells, `work_census`), clipped to the mesh.
+    """
+
+    def __init__(self, mesh: HexGrid, owner: np.ndarray, nparts: int, width: float, part_boxes=None):
         lo = mesh.bbox[:, 0, :].min(axis=0) - width
         hi = mesh.bbox[:, 1, :].max(axis=0) + width
         size = width
@@ -131,8 +135,12 @@ class HaloBins:
             size *= 1.25
         self.lo, self.size, self.dims = lo, float(size), dims
         self.marked = np.zeros((nparts, int(np.prod(dims))), dtype=bool)
+        lo_mesh, hi_mesh = mesh.bbox[:, 0, :].min(axis=0), mesh.bbox[:, 1, :].max(axis=0)
         for p in range(nparts):
-            box = np.ascontiguousarray(mesh.bbox[owner == p])
+            if part_boxes is None:
+                box = np.ascontiguousarray(mesh.bbox[owner == p])
+            else:
+                box = np.clip(part_boxes[p], lo_mesh, hi_mesh)[None].copy()
             m = np.zeros((self.marked.shape[1], 1), dtype=np.int64)
             _mark(box, box.shape[0], width, lo, self.size, dims, 0, np.int64(1), m)
             self.marked[p] = m[:, 0] != 0
@@ -173,6 +181,87 @@ def particle_census(
         out["pairs"][p] = int(listed.sum())
         out["force_pairs"][p] = int((listed & ((powner[i] == p) | (powner[j] == p))).sum())
     out["powner"] = powner
+    return out
+
+
+def weighted_rcb(points: np.ndarray, weights: np.ndarray, nparts: int, axes: tuple[int, ...]):
+    """Recursive coordinate bisection balancing summed weights: part of each point and each part's box.
+
+    Each cut halves the longest extent (of `axes`) of its points where the cumulative weight reaches the
+    share of the parts on the lower side; the boxes are the cut planes (unbounded at the outer faces).
+    """
+    owner = np.zeros(points.shape[0], dtype=np.int32)
+    boxes = np.empty((nparts, 2, points.shape[1]))
+    inf = np.full(points.shape[1], np.inf)
+    stack = [(np.arange(points.shape[0]), 0, int(nparts), -inf, inf)]
+    while stack:
+        idx, first, k, lo, hi = stack.pop()
+        if k == 1:
+            owner[idx] = first
+            boxes[first] = lo, hi
+            continue
+        k0 = k // 2
+        if idx.size == 0:
+            axis, cut = axes[0], lo[axes[0]] if np.isfinite(lo[axes[0]]) else 0.0
+            left = right = idx
+        else:
+            pts = points[idx]
+            axis = axes[int(np.argmax(np.ptp(pts[:, list(axes)], axis=0)))]
+            order = idx[np.argsort(points[idx, axis], kind="stable")]
+            cw = np.cumsum(weights[order])
+            m = int(np.searchsorted(cw, cw[-1] * k0 / k))
+            x = points[order, axis]
+            cut = x[m] if m == 0 else (x[-1] if m >= x.size else 0.5 * (x[m - 1] + x[m]))
+            left, right = order[:m], order[m:]
+        hi_l, lo_r = hi.copy(), lo.copy()
+        hi_l[axis] = lo_r[axis] = cut
+        stack += [(left, first, k0, lo, hi_l), (right, first + k0, k - k0, lo_r, hi)]
+    return owner, boxes
+
+
+def work_census(
+    mesh: HexGrid,
+    cell_owner: np.ndarray,
+    nparts: int,
+    pos: np.ndarray,
+    pairs: tuple[np.ndarray, np.ndarray],
+    width: float,
+    axes: tuple[int, ...] = (0, 2),
+) -> dict[str, np.ndarray]:
+    """The particle census of a decomposition of the particles by DEM work, decoupled from the mesh's.
+
+    Particles are owned by a weighted RCB of their positions (weight: the listed pairs a particle is in,
+    half each, plus 0.1 for its own integration), cutting `axes` (default the width and the height: compact
+    parts instead of columns), re-cut at every snapshot. Ghosts follow febed's rule with each part's box in
+    place of its cells (`HaloBins`). The coupling stays with the gas partition: a particle whose cell
+    another rank owns goes there at every gas step and its forces come back (`transfer_out`, `transfer_in`,
+    `transfer_nbrs`); `cell_owner` is the owner of each particle's cell.
+    """
+    i, j = pairs
+    deg = np.bincount(np.concatenate([i, j]), minlength=pos.shape[0])
+    owner, boxes = weighted_rcb(pos, 0.1 + 0.5 * deg, nparts, axes)
+    halo = HaloBins(mesh, None, nparts, width, part_boxes=boxes)
+    near = halo.marked[:, halo.bins(pos)]  # (nparts, particles): inside the part's inflated box's bins
+    keys = ("owned", "ghosts", "sent", "pairs", "force_pairs", "ghost_nbrs", "transfer_out", "transfer_in")
+    out = {k: np.zeros(nparts, dtype=np.int64) for k in (*keys, "transfer_nbrs")}
+    out["owned"][:] = np.bincount(owner, minlength=nparts)
+    for p in range(nparts):
+        g = near[p] & (owner != p)
+        out["ghosts"][p] = int(g.sum())
+        out["ghost_nbrs"][p] = np.unique(owner[g]).size
+        to = near[:, owner == p]
+        to[p] = False
+        out["sent"][p] = int(to.sum())
+        rows = near[p] | (owner == p)
+        listed = rows[i] & rows[j]
+        out["pairs"][p] = int(listed.sum())
+        out["force_pairs"][p] = int((listed & ((owner[i] == p) | (owner[j] == p))).sum())
+        away = (owner == p) & (cell_owner != p)
+        come = (cell_owner == p) & (owner != p)
+        out["transfer_out"][p] = int(away.sum())
+        out["transfer_in"][p] = int(come.sum())
+        out["transfer_nbrs"][p] = np.unique(np.concatenate([cell_owner[away], owner[come]])).size
+    out["powner"] = owner
     return out
 
 

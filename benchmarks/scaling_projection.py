@@ -52,6 +52,11 @@ GAS_REDUCTIONS = 30  # global reductions per gas step (CFL, mass balance, CG dot
 # ghost refresh), shared memory; over a network the model adds latency and bytes / bandwidth on top.
 UPDATE_CALLS = 17e-6
 REBUILD_CALLS = 141e-6
+# A decomposition of the particles apart from the mesh's: each gas step, a particle whose cell another rank
+# owns goes there (position, velocity, diameter, id: 8 doubles) and its forces come back (drag and pressure
+# gradient force, 6 doubles), in one exchange each way; taken to cost the calls of a ghost update.
+TRANSFER_BYTES = (8 + 6) * 8
+TRANSFER_CALLS = 2 * UPDATE_CALLS
 # Documented 1 -> 2 rank measurements of C2 on the same machine with nothing else running
 # (docs/performance-history.csv): a 0.01 s window of a state whose particles split 25,501 / 31,795 (the
 # checkpoint's 25,539 / 31,757), and a 1 s window of a bubbling bed (particles max/mean 1.116 on average).
@@ -100,21 +105,30 @@ def take_census(run: Path, t0: float, t1: float, skin_ratio: float) -> dict:
                 out[f"{name}/{P}/{k}"] = v
             width = 1.2 * (states[0][2].max() * (1 + skin_ratio))
             halo = sc.HaloBins(mesh, owner, P, width)
-            rows = []
-            prev = None
+            rows, work = [], []
+            prev = prev_w = None
             for (_, pos, d, gid), (skin, pr) in zip(states, pairs, strict=True):
                 c = sc.particle_census(mesh, owner, P, halo, pos, d, skin, pr)
-                c["migrated"] = np.zeros(P, dtype=np.int64)  # particles leaving each rank since the last snapshot
-                if prev is not None and gid is not None and np.array_equal(prev[0], gid):
-                    moved = prev[1] != c["powner"]
-                    c["migrated"] = np.bincount(prev[1][moved], minlength=P)
-                prev = (gid, c["powner"])
+                w = sc.work_census(mesh, c["powner"], P, pos, pr, width)
+                prev = _migrated(c, prev, gid, P)
+                prev_w = _migrated(w, prev_w, gid, P)
                 rows.append(c)
-            for k in rows[0]:
-                if k != "powner":
-                    out[f"{name}/{P}/{k}"] = np.array([r[k] for r in rows])  # (snapshots [+ checkpoint], P)
+                work.append(w)
+            for tag, got in (("", rows), ("work/", work)):
+                for k in got[0]:
+                    if k != "powner":
+                        out[f"{name}/{P}/{tag}{k}"] = np.array([r[k] for r in got])  # (snapshots [+ checkpoint], P)
             print(f"census {name} P = {P}: done", flush=True)
     return out
+
+
+def _migrated(c: dict, prev, gid, P: int):
+    """Set c["migrated"], the particles leaving each rank since the last snapshot; the state for the next."""
+    c["migrated"] = np.zeros(P, dtype=np.int64)
+    if prev is not None and gid is not None and np.array_equal(prev[0], gid):
+        moved = prev[1] != c["powner"]
+        c["migrated"] = np.bincount(prev[1][moved], minlength=P)
+    return gid, c["powner"]
 
 
 def load_measured(name: str, P: int, tag: str = "") -> dict | None:
@@ -162,16 +176,21 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None) -
     }
 
 
-def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(None)) -> dict:
-    """Seconds per simulated second of each phase on the slowest rank (mean over the snapshots)."""
+def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(None), work: bool = False) -> dict:
+    """Seconds per simulated second of each phase on the slowest rank (mean over the snapshots).
+
+    `work`: the particles decomposed by DEM work apart from the mesh (`scaling_census.work_census`); the
+    coupling then also sends each particle whose cell another rank owns there and its forces back.
+    """
     L, B = net["latency"], net["bandwidth"]
     red = L * math.ceil(math.log2(P)) if P > 1 else 0.0
     nd, nb = cost["dem_steps_per_s"], cost["builds_per_s"]
     ng = cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1.0)
-    fp = c[f"{name}/{P}/force_pairs"][rows]  # (snapshots, P)
-    sent = c[f"{name}/{P}/sent"][rows]
-    nbr = c[f"{name}/{P}/ghost_nbrs"][rows]
-    mig = c[f"{name}/{P}/migrated"][rows]
+    key = f"{name}/{P}/work/" if work and P > 1 else f"{name}/{P}/"
+    fp = c[f"{key}force_pairs"][rows]  # (snapshots, P)
+    sent = c[f"{key}sent"][rows]
+    nbr = c[f"{key}ghost_nbrs"][rows]
+    mig = c[f"{key}migrated"][rows]
     dem = nd * (
         fp * cost["us_per_pair_step"] * 1e-6 + (UPDATE_CALLS + nbr * L + sent * UPDATE_BYTES / B + red) * (P > 1)
     )
@@ -181,11 +200,14 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
         + nb * (REBUILD_CALLS + sent * REFRESH_BYTES / B + 2 * nbr * L + P * L) * (P > 1)
         + mig * MIGRATE_BYTES / B / gap
     )
-    owned = c[f"{name}/{P}/owned"][rows]
-    listed = c[f"{name}/{P}/pairs"][rows]
+    owned = c[f"{key}owned"][rows]
+    listed = c[f"{key}pairs"][rows]
     extra = listed * cost["us_per_pair_keyed_rebuild"] + owned * cost["us_per_particle_locate"]
     dem = dem + nb * extra * 1e-6 * (P > 1)  # the parallel rebuild's own work: history by key, locating
-    cpl = ng * owned * cost["us_per_particle_step"] * 1e-6
+    cpl = ng * c[f"{name}/{P}/owned"][rows] * cost["us_per_particle_step"] * 1e-6  # on the owners of the cells
+    if key != f"{name}/{P}/":  # particles to the owners of their cells and their forces back
+        moved = c[f"{key}transfer_out"][rows] + c[f"{key}transfer_in"][rows]
+        cpl = cpl + ng * (moved * TRANSFER_BYTES / B + 2 * c[f"{key}transfer_nbrs"][rows] * L + TRANSFER_CALLS)
     nodes = c[f"{name}/{P}/nodes"][None, :]
     halo = c[f"{name}/{P}/halo"][None, :]
     hn = c[f"{name}/{P}/halo_nbrs"][None, :]
@@ -261,59 +283,71 @@ def main() -> None:
         f"interconnect: {args.bandwidth / 1e9:g} GB/s, {args.latency * 1e6:g} µs per message; reductions log2(P) "
         f"latencies"
     )
-    result = {"costs": cost, "net": net, "meshes": {}}
+    result = {"costs": cost, "net": net, "meshes": {}, "meshes_work": {}}
     for name in MESHES:
         label = "intermediate" if name == "C2" else "fine"
-        t1 = phase_times(census, name, 1, cost, net, snap)
-        print(
-            f"\n{name} ({label} mesh, {int(census[f'{name}/1/nodes'][0])} nodes), loads max/mean over ranks "
-            f"(mean over snapshots) and projected efficiency"
-        )
-        hdr = (
-            f"{'P':>3} {'particles':>9} {'ghosts/own':>10} {'pairs':>6} {'nodes':>6} {'halo/node':>9} "
-            f"{'kB/gas step':>11} {'E_DEM':>6} {'E_cpl':>6} {'E_gas':>6} {'E':>6}"
-        )
-        print(hdr)
-        rows = []
-        for P in RANKS:
-            tp = phase_times(census, name, P, cost, net, snap)
-            own = census[f"{name}/{P}/owned"][snap]
-            mm = lambda a: float(np.mean(a.max(axis=1) / np.maximum(a.mean(axis=1), 1)))  # noqa: E731
-            ghost = float(np.mean(census[f"{name}/{P}/ghosts"][snap].sum(axis=1) / own.sum(axis=1)))
-            nodes = census[f"{name}/{P}/nodes"]
-            halo = float(census[f"{name}/{P}/halo"].max() / max(nodes.min(), 1))
-            n_sub = cost["dem_steps_per_s"] / (cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1))
-            kb = float(np.mean(census[f"{name}/{P}/sent"][snap].max(axis=1))) * UPDATE_BYTES * n_sub / 1e3
-            kb += float(census[f"{name}/{P}/halo"].max()) * GAS_EXCHANGES * GAS_VALUES * 8 / 1e3
-            e = {k: t1[k] / (P * tp[k]) for k in ("dem", "coupling", "gas", "total")}
-            rows.append(
-                {
-                    "P": P,
-                    "particles": mm(own),
-                    "ghost_ratio": ghost,
-                    "pairs": mm(census[f"{name}/{P}/force_pairs"][snap]),
-                    "nodes": mm(nodes[None, :]),
-                    "halo_per_node": halo,
-                    "kB_per_gas_step": kb,
-                    **{f"E_{k}": v for k, v in e.items()},
-                    "time": tp,
-                }
-            )
+        for work in (False, True):
+            how = "particles by DEM work, apart from the mesh" if work else "particles with their cells"
             print(
-                f"{P:3d} {mm(own):9.3f} {ghost:10.3f} {rows[-1]['pairs']:6.3f} {rows[-1]['nodes']:6.3f} "
-                f"{halo:9.3f} {kb:11.1f} {e['dem']:6.1%} {e['coupling']:6.1%} {e['gas']:6.1%} {e['total']:6.1%}"
+                f"\n{name} ({label} mesh, {int(census[f'{name}/1/nodes'][0])} nodes), {how}: loads max/mean over "
+                f"ranks (mean over snapshots) and projected efficiency"
             )
-        for r in rows:
-            if r["P"] >= 8:
-                print(
-                    f"{name}: projected efficiency at {r['P']} ranks: {r['E_total']:.0%} (DEM {r['E_dem']:.0%}, "
-                    f"coupling {r['E_coupling']:.0%}, gas {r['E_gas']:.0%})"
-                )
-        result["meshes"][name] = rows
+            rows = efficiency_rows(census, name, cost, net, snap, work)
+            for r in rows:
+                if r["P"] >= 8:
+                    print(
+                        f"{name}{', particles by work' if work else ''}: projected efficiency at {r['P']} ranks: "
+                        f"{r['E_total']:.0%} (DEM {r['E_dem']:.0%}, coupling {r['E_coupling']:.0%}, gas "
+                        f"{r['E_gas']:.0%})"
+                    )
+            result["meshes_work" if work else "meshes"][name] = rows
     if census.get("checkpoint") is not None and bool(census["checkpoint"]):
         validate(census, cost, net, m1, m2, result)
     plot(result)
     (OUT / "scaling_projection.json").write_text(json.dumps(result, indent=1, default=float))
+
+
+def efficiency_rows(census: dict, name: str, cost: dict, net: dict, snap: slice, work: bool) -> list[dict]:
+    """Per rank count: the loads (max/mean), the bytes per gas step and the projected efficiencies (printed)."""
+    t1 = phase_times(census, name, 1, cost, net, snap)
+    print(
+        f"{'P':>3} {'particles':>9} {'ghosts/own':>10} {'pairs':>6} {'nodes':>6} {'halo/node':>9} "
+        f"{'kB/gas step':>11} {'E_DEM':>6} {'E_cpl':>6} {'E_gas':>6} {'E':>6}"
+    )
+    rows = []
+    for P in RANKS:
+        tp = phase_times(census, name, P, cost, net, snap, work)
+        key = f"{name}/{P}/work/" if work and P > 1 else f"{name}/{P}/"
+        own = census[f"{key}owned"][snap]
+        mm = lambda a: float(np.mean(a.max(axis=1) / np.maximum(a.mean(axis=1), 1)))  # noqa: E731
+        ghost = float(np.mean(census[f"{key}ghosts"][snap].sum(axis=1) / own.sum(axis=1)))
+        nodes = census[f"{name}/{P}/nodes"]
+        halo = float(census[f"{name}/{P}/halo"].max() / max(nodes.min(), 1))
+        n_sub = cost["dem_steps_per_s"] / (cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1))
+        kb = float(np.mean(census[f"{key}sent"][snap].max(axis=1))) * UPDATE_BYTES * n_sub / 1e3
+        kb += float(census[f"{name}/{P}/halo"].max()) * GAS_EXCHANGES * GAS_VALUES * 8 / 1e3
+        if key.endswith("work/"):
+            moved = census[f"{key}transfer_out"][snap] + census[f"{key}transfer_in"][snap]
+            kb += float(np.mean(moved.max(axis=1))) * TRANSFER_BYTES / 1e3
+        e = {k: t1[k] / (P * tp[k]) for k in ("dem", "coupling", "gas", "total")}
+        rows.append(
+            {
+                "P": P,
+                "particles": mm(own),
+                "ghost_ratio": ghost,
+                "pairs": mm(census[f"{key}force_pairs"][snap]),
+                "nodes": mm(nodes[None, :]),
+                "halo_per_node": halo,
+                "kB_per_gas_step": kb,
+                **{f"E_{k}": v for k, v in e.items()},
+                "time": tp,
+            }
+        )
+        print(
+            f"{P:3d} {mm(own):9.3f} {ghost:10.3f} {rows[-1]['pairs']:6.3f} {rows[-1]['nodes']:6.3f} "
+            f"{halo:9.3f} {kb:11.1f} {e['dem']:6.1%} {e['coupling']:6.1%} {e['gas']:6.1%} {e['total']:6.1%}"
+        )
+    return rows
 
 
 def validate(census, cost, net, m1, m2, result) -> None:
@@ -375,7 +409,7 @@ def plot(result) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
     for ax, (name, rows) in zip(axes, result["meshes"].items(), strict=True):
         P = [r["P"] for r in rows]
         for key, lab, st in (
@@ -385,6 +419,9 @@ def plot(result) -> None:
             ("E_gas", "gas", "C1-d"),
         ):
             ax.plot(P, [r[key] for r in rows], st, label=lab)
+        for key, lab, st in (("E_total", "whole step", "k--o"), ("E_dem", "DEM", "C0--s")):
+            work = result["meshes_work"][name]
+            ax.plot(P, [r[key] for r in work], st, mfc="none", label=f"{lab}, particles by DEM work")
         if name == "C2" and "validation" in result:
             v = result["validation"]
             ref = list(DOCUMENTED.values())[0]
