@@ -66,9 +66,9 @@ REFRESH_ITERATIONS = 8
 # bits; the matrix-norm estimate makes each setup a function of its matrix alone.
 WEIGHTED_OPTIONS = {"pc_use_amat": "false", "pc_ml_SpectralNormScheme_Anorm": "true"}
 # One process, a pressure outlet and at most this many nodes: the weighted solve's preconditioner is the
-# Cholesky factorisation of L_w of a recent step instead of its AMG. On seed 000's 2D bed (1,919 nodes) a
-# solve then costs 0.77 instead of 1.14 ms and the factor is rebuilt less often (the gas step 12 % less,
-# benchmarks/coarse.py's TM l = 2 run); on the 7,000-node coarse pseudo-2D mesh both cost the same.
+# Cholesky factorisation of L_w of a recent step instead of its AMG. On seed 000's 2D bed (1,919 nodes) the
+# factor is rebuilt less often and the gas of benchmarks/coarse.py's TM l = 2 run takes 14 % less (0.55
+# against 0.64 s, medians of 3 rounds back to back); on the 7,000-node coarse pseudo-2D mesh both cost the same.
 WEIGHTED_DIRECT_MAX_NODES = 5_000
 
 
