@@ -111,8 +111,10 @@ class WeightedLaplacian:
         self.bc_K = np.ascontiguousarray(K[self.bc_cells])
         u, v = ufl.TrialFunction(Q), ufl.TestFunction(Q)
         self.form = dolfinx.fem.form(ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx)  # L's sparsity (several ranks)
-        l2g = imap.local_to_global(np.arange(n_local, dtype=np.int32))
-        self._global_entries = (l2g[rows], l2g[self.cols])  # each local CSR entry's global row and column
+        self._global_entries = None  # several ranks: each local CSR entry's global row and column (`matrix`)
+        if self.comm.size > 1:
+            l2g = imap.local_to_global(np.arange(n_local, dtype=np.int32))
+            self._global_entries = (l2g[rows], l2g[self.cols])
         self._coo = {}  # the COO fill of each matrix made on several ranks, by its handle
         self.A = self.matrix(self.vals)
         self.yg = dolfinx.la.create_petsc_vector(imap, 1)
