@@ -8,6 +8,7 @@ coupled runs are the seed-000 2D bed of demos/wang2d for a few gas steps.
 
 import json
 import math
+import signal
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -150,6 +151,26 @@ def test_every_run_mode_reports_an_unexpected_exception_as_an_internal_error(tmp
     assert run.statuses == [("failed", str(info.value))]
     assert run.log.errors == [(f"run failed: {info.value}", run.fault)]  # logged with its traceback
     assert run.closed == [False]  # files closed, no last output from a broken state
+
+
+def test_a_second_signal_wrapped_by_an_extension_stops_the_run_at_once_not_as_an_internal_error(tmp_path):
+    """A handler raising StopNow while Numba loads a cached kernel reaches the run as a SystemError caused by it."""
+    from febed.runs.lifecycle import Interrupted, StopNow, run_to_end
+
+    try:
+        try:
+            raise StopNow(signal.SIGINT)
+        except StopNow as stop:
+            raise SystemError("CPUDispatcher(<function pair_keys>) returned a result with an exception set") from stop
+    except SystemError as wrapped:
+        fault = wrapped
+    run = _Run(fault, tmp_path)
+    run.log.warning = lambda msg: None
+    with pytest.raises(Interrupted, match="stopped at once by a second SIGINT") as info:
+        run_to_end(run, 1.0)
+    assert info.value.signum == signal.SIGINT
+    assert [state for state, _ in run.statuses] == ["interrupted"] and run.log.errors == []
+    assert run.closed == [False]
 
 
 @pytest.mark.parametrize("make", ["RunFailure", "DEMFailure"])

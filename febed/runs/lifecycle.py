@@ -356,6 +356,9 @@ def run_to_end(run, end: float) -> None:
         last_output = False
         if isinstance(e, (RunFailure, DEMFailure, Interrupted, InternalError)):
             raise
+        signal_stop = interrupt_behind(e)
+        if signal_stop is not None:  # a second signal raised inside an extension's callback, which wrapped it
+            raise stopped_at_once(run, signal_stop) from None
         raise record_internal_error(run, e) from e
     finally:
         try:
@@ -363,6 +366,22 @@ def run_to_end(run, end: float) -> None:
                 close_after_error(run, last_output and not getattr(run, "mid_step", False))
         finally:
             restore_signals()
+
+
+def interrupt_behind(error: BaseException) -> KeyboardInterrupt | None:
+    """The stop signal (`KeyboardInterrupt`, e.g. `StopNow`) that caused `error`, if one is in its chain.
+
+    A signal handler that raises while an extension runs Python code (Numba loading a cached kernel, say)
+    has its exception wrapped: the extension reports a SystemError whose cause is the interrupt.
+    """
+    seen = set()
+    e = error
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def close_after_error(run, last_output: bool) -> None:
