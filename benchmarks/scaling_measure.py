@@ -8,11 +8,15 @@ in CPU seconds of each rank, to benchmarks/out/measured_<case>_P<ranks>[<tag>].j
 
     [mpirun -n 2] python benchmarks/scaling_measure.py --restart RUN_DIR [--case demos/pseudo2d/C2.toml]
         [--warmup 0.004] [--sim-time 0.01] [--set KEY=VALUE ...] [--tag NAME] [--rebuilds N]
+    python benchmarks/scaling_measure.py --restart RUN_DIR --staged --tag _staged
     mpirun -n 2 python benchmarks/scaling_measure.py --pingpong
 
 `--rebuilds N` then times N pair-list rebuilds (fastest and median); serially also N rebuilds that restore
 the contact history by key, as every rank's rebuild does on several ranks, and the locating of every
-particle: the parallel rebuild's own work, on one core. `--pingpong` measures instead, between two ranks of
+particle: the parallel rebuild's own work, on one core. `--staged` runs the window on one process with the DEM
+stepping as every rank of a parallel run does (a kernel call per stage of each step, a ghost update between
+them with nothing to send, rebuilds migrating and restoring the contact history by key): the DEM cost per
+pair of the parallel code path. `--pingpong` measures instead, between two ranks of
 this machine (shared memory), the latency, the bandwidth and an 8-byte allreduce, and the MPI calls of a
 ghost update and of a rebuild's exchanges, emulated with `--ghosts` rows and `--movers` leaving particles.
 
@@ -29,6 +33,7 @@ import time
 from pathlib import Path
 
 from mpi4py import MPI
+from petsc4py import PETSc
 
 import numpy as np
 
@@ -37,6 +42,8 @@ from febed.case import load_case
 from febed.coupling.locate import locate
 from febed.io.checkpoint import load_checkpoint
 from febed.io.rundir import get_logger
+from febed.parallel.exchange import ParticleExchange
+from febed.parallel.partition import cell_owners
 from febed.runs.coupled import CoupledRun
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -145,6 +152,11 @@ def pingpong(comm, ghosts: int, movers: int) -> None:
         )
 
 
+def _ksp_seconds() -> float:
+    """Wall seconds this process has spent in PETSc's KSPSolve and KSPSetUp so far (PETSc.Log.begin first)."""
+    return sum(PETSc.Log.Event(name).getPerfInfo()["time"] for name in ("KSPSolve", "KSPSetUp"))
+
+
 def timed_calls(comm, fn, reps: int) -> list[float]:
     """(fastest, median) seconds of this rank's own part of reps calls of fn, each started together.
 
@@ -172,6 +184,11 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], help="case overrides KEY=VALUE (repeatable)")
     parser.add_argument("--rebuilds", type=int, default=0, help="then time this many pair-list rebuilds")
     parser.add_argument("--tag", default="", help="appended to the output file name")
+    parser.add_argument(
+        "--staged", action="store_true",
+        help="on one process, step the DEM the way every rank of a parallel run does (staged kernels, "
+        "rebuilds through the particle exchange)",
+    )  # fmt: skip
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "out"))
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
@@ -187,6 +204,7 @@ def main() -> None:
                 )
             return
         args.restart = str(ROOT / "runs" / "C2")
+    PETSc.Log.begin()  # PETSc's event times: the linear solves' share of the gas phase
     tmp = Path(comm.bcast(tempfile.mkdtemp(prefix="febed-measure-") if comm.rank == 0 else None, root=0))
     quiet = [f"output.directory={tmp}", "output.field_interval=100", "output.particle_interval=100"]
     case = load_case(args.case, quiet + args.set)
@@ -194,9 +212,12 @@ def main() -> None:
     log = get_logger(None, comm)
     run = CoupledRun(case, tmp, log, comm, restart=load_checkpoint(Path(args.restart), comm))
     s = run.solver
+    if args.staged and comm.size == 1:  # an exchange on one process: no messages, the parallel code path
+        s.dem.attach_exchange(ParticleExchange(s.ma, cell_owners(s.md.mesh)))
     run.advance_to(s.t + args.warmup)
     comm.barrier()
     before = s.timers.as_dict()
+    ksp0 = _ksp_seconds()
     steps0, builds0, dem0 = s.steps, s.dem.pairs.builds, s.dem.steps
     start = loads(s)
     w0, c0 = time.perf_counter(), time.process_time()
@@ -208,6 +229,7 @@ def main() -> None:
     w1, c1 = time.perf_counter(), time.process_time()
     comm.barrier()
     after = s.timers.as_dict()
+    ksp1 = _ksp_seconds()
     mine = {
         "rank": comm.rank,
         "t0": sim0,
@@ -215,7 +237,9 @@ def main() -> None:
         "wall": w1 - w0,
         "cpu": c1 - c0,
         "split": {k.removeprefix("wall_"): after[k] - before[k] for k in after},  # CPU seconds
+        "ksp": ksp1 - ksp0,  # wall seconds in PETSc's KSPSolve and KSPSetUp (part of the gas phase)
         "overrides": args.set,
+        "staged": bool(args.staged or comm.size > 1),
         "gas_steps": s.steps - steps0,
         "dem_steps": int(s.dem.steps - dem0),
         "builds": int(s.dem.pairs.builds - builds0),
