@@ -19,6 +19,8 @@ the same geometry through gmsh's Python API.
 from __future__ import annotations
 
 import os
+import signal
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -116,12 +118,36 @@ class MeshData:
 
 
 _GMSH_READY = False
+_GMSH_IMPORT = threading.Lock()
+
+
+def _import_gmsh():
+    """Import gmsh, also from a thread other than the main one.
+
+    gmsh's Python module sets and restores the SIGINT handler while it loads, which Python allows in the main
+    thread only; elsewhere (a run started from a worker thread) the import would fail. There, the import runs
+    with `signal.signal` only reporting the current handler, so nothing is changed.
+    """
+    import sys
+
+    if "gmsh" in sys.modules or threading.current_thread() is threading.main_thread():
+        import gmsh
+
+        return gmsh
+    with _GMSH_IMPORT:
+        real = signal.signal
+        signal.signal = lambda sig, handler: signal.getsignal(sig)
+        try:
+            import gmsh
+        finally:
+            signal.signal = real
+    return gmsh
 
 
 def _gmsh():
     """The gmsh module, initialised once per process (gmsh 4.8 has no isInitialized())."""
     global _GMSH_READY
-    import gmsh
+    gmsh = _import_gmsh()
 
     if not _GMSH_READY:
         gmsh.initialize([], False)

@@ -169,3 +169,23 @@ def test_cells_are_shared_by_coordinate_bisection_across_gravity(seed_meshes, va
     tol = 1e-9 * (hi - lo)  # (centroids are means in each rank's node order)
     assert height.min() < lo + tol and height.max() > hi - tol  # every rank's cells reach the bottom and the top
     assert np.array_equal(again.original_cell_index[:n], t.original_cell_index[:n])
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="one process: a fresh interpreter that has not imported gmsh")
+def test_a_mesh_is_built_from_a_worker_thread(tmp_path):
+    """gmsh's module sets the SIGINT handler on import, which Python refuses outside the main thread."""
+    import subprocess
+    import sys
+
+    script = (
+        "import signal, threading\n"
+        "from febed.meshing import build_msh\n"
+        "before = signal.getsignal(signal.SIGINT)\n"
+        "out = []\n"
+        f"t = threading.Thread(target=lambda: out.append(build_msh('pseudo2d', {str(tmp_path / 'x.msh')!r})))\n"
+        "t.start(); t.join()\n"
+        "assert out and signal.getsignal(signal.SIGINT) is before, out\n"
+        "print('built', out[0])\n"
+    )
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "built" in run.stdout, run.stderr
