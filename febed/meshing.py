@@ -416,6 +416,8 @@ def _model_to_mesh(model, comm, gdim: int):
     import dolfinx.graph
     import dolfinx.io.utils
     import dolfinx.mesh
+
+    _import_gmsh()  # before gmshio, which imports gmsh too
     from dolfinx.io import gmshio
 
     root = 0

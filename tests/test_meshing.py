@@ -179,10 +179,14 @@ def test_a_mesh_is_built_from_a_worker_thread(tmp_path):
 
     script = (
         "import signal, threading\n"
-        "from febed.meshing import build_msh\n"
+        "from mpi4py import MPI\n"
+        "from febed.meshing import build_msh, load_msh\n"
         "before = signal.getsignal(signal.SIGINT)\n"
         "out = []\n"
-        f"t = threading.Thread(target=lambda: out.append(build_msh('pseudo2d', {str(tmp_path / 'x.msh')!r})))\n"
+        "def work():\n"
+        f"    path = build_msh('pseudo2d', {str(tmp_path / 'x.msh')!r})\n"
+        "    out.append(load_msh(path, comm=MPI.COMM_SELF).mesh.topology.index_map(3).size_global)\n"
+        "t = threading.Thread(target=work)\n"
         "t.start(); t.join()\n"
         "assert out and signal.getsignal(signal.SIGINT) is before, out\n"
         "print('built', out[0])\n"
