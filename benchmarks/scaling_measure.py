@@ -9,6 +9,7 @@ in CPU seconds of each rank, to benchmarks/out/measured_<case>_P<ranks>[<tag>].j
     [mpirun -n 2] python benchmarks/scaling_measure.py --restart RUN_DIR [--case demos/pseudo2d/C2.toml]
         [--warmup 0.004] [--sim-time 0.01] [--set KEY=VALUE ...] [--tag NAME] [--rebuilds N]
     python benchmarks/scaling_measure.py --restart RUN_DIR --staged --tag _staged
+    mpirun -n 2 python benchmarks/scaling_measure.py --restart RUN_DIR --barriers --tag _barriers
     mpirun -n 2 python benchmarks/scaling_measure.py --pingpong
 
 `--rebuilds N` then times N pair-list rebuilds (fastest and median); serially also N rebuilds that restore
@@ -16,9 +17,11 @@ the contact history by key, as every rank's rebuild does on several ranks, and t
 particle: the parallel rebuild's own work, on one core. `--staged` runs the window on one process with the DEM
 stepping as every rank of a parallel run does (a kernel call per stage of each step, a ghost update between
 them with nothing to send, rebuilds migrating and restoring the contact history by key): the DEM cost per
-pair of the parallel code path. `--pingpong` measures instead, between two ranks of
-this machine (shared memory), the latency, the bandwidth and an 8-byte allreduce, and the MPI calls of a
-ghost update and of a rebuild's exchanges, emulated with `--ghosts` rows and `--movers` leaving particles.
+pair of the parallel code path. `--barriers` starts each phase of the step with a barrier whose time is
+recorded apart ("waits"), so that a phase's time is its own work, not the wait for another rank.
+`--pingpong` measures instead, between two ranks of this machine (shared memory), the latency, the
+bandwidth and an 8-byte allreduce, and the MPI calls of a ghost update and of a rebuild's exchanges,
+emulated with `--ghosts` rows and `--movers` leaving particles.
 
 CPU seconds are the measure to use serially on a machine shared with other jobs: a descheduled process
 loses wall time, not CPU time. On several ranks they are not: a rank waiting for a descheduled partner
@@ -152,6 +155,33 @@ def pingpong(comm, ghosts: int, movers: int) -> None:
         )
 
 
+def _barriers(s, comm) -> dict:
+    """Start each phase of the solver's step (DEM, coupling, gas) with a barrier; returns its CPU seconds per phase.
+
+    A phase's time then holds its own work only, not the wait for another rank to finish the phase before
+    (a barrier inside a phase's timer is recorded apart, to be subtracted; the one before the particle
+    sub-steps is outside every timer).
+    """
+    waits = {"dem": 0.0, "coupling": 0.0, "gas": 0.0, "untimed": 0.0}
+
+    def wrap(obj, name: str, phase: str) -> None:
+        inner = getattr(obj, name)
+
+        def call(*a, **k):
+            t = time.process_time()
+            comm.Barrier()
+            waits[phase] += time.process_time() - t
+            return inner(*a, **k)
+
+        setattr(obj, name, call)
+
+    wrap(s, "advance_particles", "untimed")  # before its own timers start
+    wrap(s.dem, "advance", "dem")
+    wrap(s, "project", "coupling")
+    wrap(s.gas, "step", "gas")
+    return waits
+
+
 def _ksp_seconds() -> float:
     """Wall seconds this process has spent in PETSc's KSPSolve and KSPSetUp so far (PETSc.Log.begin first)."""
     return sum(PETSc.Log.Event(name).getPerfInfo()["time"] for name in ("KSPSolve", "KSPSetUp"))
@@ -185,6 +215,10 @@ def main() -> None:
     parser.add_argument("--rebuilds", type=int, default=0, help="then time this many pair-list rebuilds")
     parser.add_argument("--tag", default="", help="appended to the output file name")
     parser.add_argument(
+        "--barriers", action="store_true",
+        help="a barrier before each phase of the step, its time recorded apart (each phase's own work)",
+    )  # fmt: skip
+    parser.add_argument(
         "--staged", action="store_true",
         help="on one process, step the DEM the way every rank of a parallel run does (staged kernels, "
         "rebuilds through the particle exchange)",
@@ -214,10 +248,12 @@ def main() -> None:
     s = run.solver
     if args.staged and comm.size == 1:  # an exchange on one process: no messages, the parallel code path
         s.dem.attach_exchange(ParticleExchange(s.ma, cell_owners(s.md.mesh)))
+    waits = _barriers(s, comm) if args.barriers else None
     run.advance_to(s.t + args.warmup)
     comm.barrier()
     before = s.timers.as_dict()
     ksp0 = _ksp_seconds()
+    waits0 = dict(waits) if waits else None
     steps0, builds0, dem0 = s.steps, s.dem.pairs.builds, s.dem.steps
     start = loads(s)
     w0, c0 = time.perf_counter(), time.process_time()
@@ -237,6 +273,7 @@ def main() -> None:
         "wall": w1 - w0,
         "cpu": c1 - c0,
         "split": {k.removeprefix("wall_"): after[k] - before[k] for k in after},  # CPU seconds
+        "waits": {k: waits[k] - waits0[k] for k in waits} if waits else None,  # CPU seconds at the barriers
         "ksp": ksp1 - ksp0,  # wall seconds in PETSc's KSPSolve and KSPSetUp (part of the gas phase)
         "overrides": args.set,
         "staged": bool(args.staged or comm.size > 1),
