@@ -171,6 +171,29 @@ def test_cells_are_shared_by_coordinate_bisection_across_gravity(seed_meshes, va
     assert np.array_equal(again.original_cell_index[:n], t.original_cell_index[:n])
 
 
+def test_a_measure_over_named_tags_integrates_them_and_compiles_once(seed_meshes):
+    """MeshData.ds(names): ∫ ds is the sum of the tags' areas; the form is the same for any tags (one JIT)."""
+    import dolfinx.fem
+    import ufl
+
+    md = load_msh(seed_meshes["pseudo2d-coarse"])
+    one = dolfinx.fem.Constant(md.mesh, 1.0)
+
+    def area(names):
+        local = dolfinx.fem.assemble_scalar(dolfinx.fem.form(one * md.ds(names)))
+        return md.comm.allreduce(local, op=MPI.SUM)
+
+    pair = area(["walls", "bottom_wall"])
+    assert abs(pair / (facet_area(md, "walls") + facet_area(md, "bottom_wall")) - 1) < 1e-12
+    assert abs(area(["inlet", "bottom_wall", "inlet"]) / (0.08 * 0.015) - 1) < 1e-12  # a tag named twice counts once
+    assert md.ds([]) is None
+    with pytest.raises(MeshError, match="no facet tag 'lid'"):
+        md.ds(["lid"])
+    forms = [one * md.ds(names) for names in (["walls"], ["outlet"], ["inlet", "bottom_wall"])]
+    assert len({f.signature() for f in forms}) == 1
+    assert (one * ufl.ds).signature() != forms[0].signature()
+
+
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="one process: a fresh interpreter that has not imported gmsh")
 def test_a_mesh_is_built_from_a_worker_thread(tmp_path):
     """gmsh's module sets the SIGINT handler on import, which Python refuses outside the main thread."""

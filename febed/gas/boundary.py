@@ -66,6 +66,7 @@ import dolfinx.fem
 import numpy as np
 
 from febed.gas.operators import normal_tensor_weights, tag_normal_weights
+from febed.meshing import facet_area
 
 BOUNDARY_TYPES = ("inlet", "wall", "outlet", "symmetry")
 AXES = ("x", "y", "z")
@@ -116,16 +117,6 @@ def _dofs(mesh_data, Q, name: str) -> np.ndarray:
     fdim = mesh_data.mesh.topology.dim - 1
     facets = np.asarray(mesh_data.facets(name), dtype=np.int32)
     return dolfinx.fem.locate_dofs_topological(Q, fdim, facets)
-
-
-def _area(mesh_data, Q, name: str) -> float:
-    """Area of the facets of tag `name` [m^2] (length in 2D)."""
-    import ufl
-
-    ds = ufl.Measure("ds", domain=mesh_data.mesh, subdomain_data=mesh_data.facet_tags)
-    one = dolfinx.fem.Constant(mesh_data.mesh, 1.0)
-    local = dolfinx.fem.assemble_scalar(dolfinx.fem.form(one * ds(mesh_data.tag_id(name))))
-    return mesh_data.comm.allreduce(local, op=MPI.SUM)
 
 
 class NodalBoundary:
@@ -207,7 +198,7 @@ class NodalBoundary:
             side_area = a_law[nodes] - np.abs(b_law[nodes] @ normal)
             side = side_area > 1e-9 * np.maximum(a_law[nodes], 1e-300)
             side_h = 2.0 * ops.mass[nodes[side]] / side_area[side]
-            a_total = _area(mesh_data, Q, n) + sum(_area(mesh_data, Q, c) for c in s.cross_section_tags)
+            a_total = facet_area(mesh_data, n) + sum(facet_area(mesh_data, c) for c in s.cross_section_tags)
             self.inlets.append(_Inlet(nodes, normal, s, a_total, share, side, side_h, ops.bnormal, ops.n_owned, comm))
         self.law_nodes = np.setdiff1d(law_nodes, taken)
         taken = np.union1d(taken, self.law_nodes)

@@ -153,9 +153,15 @@ def build_operators(mesh) -> NodalOperators:
     forms = [v * w.dx(d) for d in range(gdim)]
     forms += [v.dx(d) * w.dx(d) for d in range(gdim)]
     forms += [v.dx(d) * w.dx(e) + v.dx(e) * w.dx(d) for d in range(gdim) for e in range(d + 1, gdim)]
+    # one compiled form for all of them: a selector Constant picks each in turn (one JIT compilation per cell
+    # type instead of one per form; the selected term is computed exactly as alone: times 1, plus zeros)
+    pick = dolfinx.fem.Constant(mesh, PETSc.ScalarType(np.zeros(len(forms))))
+    a_all = dolfinx.fem.form(sum(pick[k] * a for k, a in enumerate(forms)) * ufl.dx)
     pattern, coefs, extra = None, [], None
-    for a in forms:
-        A = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(a * ufl.dx))
+    for k in range(len(forms)):
+        pick.value[:] = 0.0
+        pick.value[k] = 1.0
+        A = dolfinx.fem.petsc.assemble_matrix(a_all)
         A.assemble()
         indptr, indices, vals, extra = _owned_csr(A, imap, extra)
         A.destroy()
@@ -167,8 +173,7 @@ def build_operators(mesh) -> NodalOperators:
     grad = np.ascontiguousarray(np.stack(coefs[:gdim], axis=1))
     tens = np.ascontiguousarray(np.stack(coefs[gdim:], axis=1))
     mass = assemble_nodal(v * ufl.dx)
-    n = ufl.FacetNormal(mesh)
-    bnormal = np.stack([assemble_nodal(v * n[d] * ufl.ds) for d in range(gdim)], axis=1)
+    bnormal = _boundary_weights(mesh, 1, ufl.ds)
     # filter width: (mass-weighted mean volume of the cells around the node)^(1/d)
     dg0 = dolfinx.fem.FunctionSpace(mesh, ("DG", 0))
     vol = dolfinx.fem.Function(dg0)
@@ -189,32 +194,42 @@ def build_operators(mesh) -> NodalOperators:
     )
 
 
+def _boundary_weights(mesh, rank: int, ds) -> np.ndarray:
+    """∫ φ_i n ds (rank 1: (n_local, gdim)) or ∫ φ_i n⊗n ds (rank 2: (n_local, gdim, gdim)) over `ds`.
+
+    One form with a vector (tensor) test function of the nodal element: one JIT compilation per cell type
+    gives every component (ranks summed).
+    """
+    gdim = mesh.geometry.dim
+    family = "Q" if mesh.topology.cell_type.name in ("quadrilateral", "hexahedron") else "Lagrange"
+    n = ufl.FacetNormal(mesh)
+    if rank == 1:
+        V = dolfinx.fem.VectorFunctionSpace(mesh, (family, 1))
+        integrand = ufl.inner(n, ufl.TestFunction(V))
+    else:
+        V = dolfinx.fem.TensorFunctionSpace(mesh, (family, 1))
+        integrand = ufl.inner(ufl.outer(n, n), ufl.TestFunction(V))
+    values = assemble_nodal(integrand * ds)
+    return values.reshape((-1,) + (gdim,) * rank)
+
+
 def tag_normal_weights(mesh_data, Q, names) -> np.ndarray:
     """(n_local, gdim) array ∫_Γ φ_i n ds over the facets of the named tags (ranks summed)."""
     mesh = mesh_data.mesh
-    gdim = mesh.geometry.dim
-    v = ufl.TestFunction(Q)
-    n = ufl.FacetNormal(mesh)
-    ds = ufl.Measure("ds", domain=mesh, subdomain_data=mesh_data.facet_tags)
-    ids = tuple(mesh_data.tag_id(nm) for nm in names)
-    if not ids:
-        return np.zeros((Q.dofmap.index_map.size_local + Q.dofmap.index_map.num_ghosts, gdim))
-    return np.stack([assemble_nodal(v * n[d] * ds(ids)) for d in range(gdim)], axis=1)
+    ds = mesh_data.ds(names)
+    if ds is None:
+        return np.zeros((Q.dofmap.index_map.size_local + Q.dofmap.index_map.num_ghosts, mesh.geometry.dim))
+    return _boundary_weights(mesh, 1, ds)
 
 
 def normal_tensor_weights(mesh_data, Q, names) -> np.ndarray:
     """(n_local, gdim, gdim) array ∫_Γ φ_i n⊗n ds over the facets of the named tags (ranks summed)."""
     mesh = mesh_data.mesh
     gdim = mesh.geometry.dim
-    v = ufl.TestFunction(Q)
-    n = ufl.FacetNormal(mesh)
-    ds = ufl.Measure("ds", domain=mesh, subdomain_data=mesh_data.facet_tags)
-    ids = tuple(mesh_data.tag_id(nm) for nm in names)
-    out = np.zeros((Q.dofmap.index_map.size_local + Q.dofmap.index_map.num_ghosts, gdim, gdim))
-    for d in range(gdim):
-        for e in range(d, gdim):
-            out[:, d, e] = out[:, e, d] = assemble_nodal(v * n[d] * n[e] * ds(ids))
-    return out
+    ds = mesh_data.ds(names)
+    if ds is None:
+        return np.zeros((Q.dofmap.index_map.size_local + Q.dofmap.index_map.num_ghosts, gdim, gdim))
+    return _boundary_weights(mesh, 2, ds)
 
 
 def global_sum(comm, local_owned: np.ndarray | float) -> float:
