@@ -173,6 +173,23 @@ def test_a_second_signal_wrapped_by_an_extension_stops_the_run_at_once_not_as_an
     assert run.closed == [False]
 
 
+def test_an_error_met_while_handling_a_stop_is_still_an_internal_error(tmp_path):
+    """Only an explicit cause makes a wrapped stop: a bug in an `except KeyboardInterrupt` block stays a bug."""
+    from febed.runs.lifecycle import InternalError, StopNow, run_to_end
+
+    try:
+        try:
+            raise StopNow(signal.SIGINT)
+        except StopNow:
+            raise KeyError("gid")  # noqa: B904 (its context, not its cause, is the stop)
+    except KeyError as bug:
+        fault = bug
+    run = _Run(fault, tmp_path)
+    with pytest.raises(InternalError, match="KeyError"):
+        run_to_end(run, 1.0)
+    assert [state for state, _ in run.statuses] == ["failed"]
+
+
 @pytest.mark.parametrize("make", ["RunFailure", "DEMFailure"])
 def test_failures_of_the_simulation_pass_through_unchanged(tmp_path, make):
     from febed.dem.solver import DEMFailure

@@ -194,8 +194,8 @@ def build_operators(mesh) -> NodalOperators:
     )
 
 
-def _boundary_weights(mesh, rank: int, ds) -> np.ndarray:
-    """∫ φ_i n ds (rank 1: (n_local, gdim)) or ∫ φ_i n⊗n ds (rank 2: (n_local, gdim, gdim)) over `ds`.
+def _boundary_weights(mesh, order: int, ds) -> np.ndarray:
+    """∫ φ_i n ds (order 1: (n_local, gdim)) or ∫ φ_i n⊗n ds (order 2: (n_local, gdim, gdim)) over `ds`.
 
     One form with a vector (tensor) test function of the nodal element: one JIT compilation per cell type
     gives every component (ranks summed).
@@ -203,14 +203,14 @@ def _boundary_weights(mesh, rank: int, ds) -> np.ndarray:
     gdim = mesh.geometry.dim
     family = "Q" if mesh.topology.cell_type.name in ("quadrilateral", "hexahedron") else "Lagrange"
     n = ufl.FacetNormal(mesh)
-    if rank == 1:
+    if order == 1:
         V = dolfinx.fem.VectorFunctionSpace(mesh, (family, 1))
         integrand = ufl.inner(n, ufl.TestFunction(V))
     else:
         V = dolfinx.fem.TensorFunctionSpace(mesh, (family, 1))
         integrand = ufl.inner(ufl.outer(n, n), ufl.TestFunction(V))
     values = assemble_nodal(integrand * ds)
-    return values.reshape((-1,) + (gdim,) * rank)
+    return values.reshape((-1,) + (gdim,) * order)
 
 
 def tag_normal_weights(mesh_data, Q, names) -> np.ndarray:

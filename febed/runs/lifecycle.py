@@ -369,10 +369,11 @@ def run_to_end(run, end: float) -> None:
 
 
 def interrupt_behind(error: BaseException) -> KeyboardInterrupt | None:
-    """The stop signal (`KeyboardInterrupt`, e.g. `StopNow`) that caused `error`, if one is in its chain.
+    """The stop signal (`KeyboardInterrupt`, e.g. `StopNow`) that caused `error`, if one is among its causes.
 
     A signal handler that raises while an extension runs Python code (Numba loading a cached kernel, say)
-    has its exception wrapped: the extension reports a SystemError whose cause is the interrupt.
+    has its exception wrapped: the extension reports a SystemError whose cause is the interrupt. Only
+    explicit causes count: an error met while handling an interrupt (its context) is an error.
     """
     seen = set()
     e = error
@@ -380,7 +381,7 @@ def interrupt_behind(error: BaseException) -> KeyboardInterrupt | None:
         if isinstance(e, KeyboardInterrupt):
             return e
         seen.add(id(e))
-        e = e.__cause__ or e.__context__
+        e = e.__cause__
     return None
 
 
