@@ -27,10 +27,14 @@ import numpy as np
 import ufl
 
 
+def nodal_family(mesh) -> str:
+    """The family of the nodal element: "Q" on quadrilaterals/hexahedra, "Lagrange" on simplices."""
+    return "Q" if mesh.topology.cell_type.name in ("quadrilateral", "hexahedron") else "Lagrange"
+
+
 def nodal_space(mesh) -> dolfinx.fem.FunctionSpace:
     """The scalar nodal space: P1 on simplices, Q1 on quadrilaterals/hexahedra."""
-    family = "Q" if mesh.topology.cell_type.name in ("quadrilateral", "hexahedron") else "Lagrange"
-    return dolfinx.fem.FunctionSpace(mesh, (family, 1))
+    return dolfinx.fem.FunctionSpace(mesh, (nodal_family(mesh), 1))
 
 
 def accumulate(vec: PETSc.Vec) -> np.ndarray:
@@ -201,7 +205,7 @@ def _boundary_weights(mesh, order: int, ds) -> np.ndarray:
     gives every component (ranks summed).
     """
     gdim = mesh.geometry.dim
-    family = "Q" if mesh.topology.cell_type.name in ("quadrilateral", "hexahedron") else "Lagrange"
+    family = nodal_family(mesh)
     n = ufl.FacetNormal(mesh)
     if order == 1:
         V = dolfinx.fem.VectorFunctionSpace(mesh, (family, 1))

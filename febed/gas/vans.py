@@ -94,7 +94,7 @@ import numpy as np
 
 from febed.gas import kernels
 from febed.gas.boundary import BoundarySpec, NodalBoundary
-from febed.gas.operators import build_operators
+from febed.gas.operators import build_operators, nodal_family
 from febed.gas.pressure import PressureSolver
 from febed.schema import check_fields, schema_field
 
@@ -250,7 +250,7 @@ class VANSSolver:
 
     # ------------------------------------------------------------------------------------------ setup
     def _family(self) -> str:
-        return "Q" if self.Q.mesh.topology.cell_type.name in ("quadrilateral", "hexahedron") else "Lagrange"
+        return nodal_family(self.Q.mesh)
 
     @classmethod
     def from_case(cls, case, mesh_data, eps: float | np.ndarray | None = None) -> VANSSolver:
