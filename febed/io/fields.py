@@ -1,8 +1,16 @@
 """Field output: nodal gas fields (u, p, ε, ...) written as one XDMF time series that ParaView opens.
 
-The mesh is written once; each call of `write(t)` appends every function at time t. P1/Q1 nodal
-functions on a degree-1 mesh are written directly (no interpolation); works serially and with MPI (the
-file is written collectively through HDF5).
+Layout (for `fields.xdmf`): the index `fields.xdmf` and a folder `fields/` holding the mesh (`mesh.h5`) and
+one HDF5 file per output time (`000000.h5`, `000001.h5`, ...). P1/Q1 nodal functions on a degree-1 mesh are
+written directly (no interpolation); works serially and with MPI (each file is written collectively through
+HDF5 by DOLFINx).
+
+**Crash-safe.** An HDF5 file that is open for writing when its process dies is unreadable as a whole (its
+superblock and object headers are written at close), so one file held open for a run would lose every field of
+the run to a `kill -9`, an out-of-memory kill or a batch system's time limit. Each output time is therefore
+its own file: written under a temporary name (`.<k>.tmp.h5`), closed, flushed to disk, renamed, and only then
+added to the index, which is itself replaced atomically (`febed.io.atomic`). Every file the index names is
+complete; a process killed during a write leaves at most that write's temporary file.
 
 A failed write (a full disk, an I/O error) raises OSError naming the file and the operating system's error,
 as any other file write does: DOLFINx reports HDF5's failures as a bare RuntimeError ("Failed to close HDF5
@@ -16,21 +24,28 @@ import ctypes
 import errno as errnos
 import os
 import re
-from contextlib import contextmanager
+import xml.etree.ElementTree as ET
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 from mpi4py import MPI
 
 import dolfinx.io
+import dolfinx.log
+
+from febed.io.atomic import atomic_write_text, fsync_folder
+
+XINCLUDE = "http://www.w3.org/2001/XInclude"
+ET.register_namespace("xi", XINCLUDE)
 
 
 class FieldWriter:
-    """XDMF time series of a fixed set of DOLFINx Functions on one mesh."""
+    """XDMF time series of a fixed set of DOLFINx Functions on one mesh, one HDF5 file per output time."""
 
     def __init__(self, path: str | Path, mesh, functions: dict, comm=MPI.COMM_WORLD):
-        """Open `path` (.xdmf, an .h5 beside it) and write the mesh; `functions` maps names to Functions.
+        """Write the mesh into the folder beside `path` (.xdmf) and an index without times.
 
-        Raises OSError (on the ranks where HDF5 failed) if the file cannot be written.
+        `functions` maps names to Functions. Raises OSError (on the ranks where it failed) if a file cannot be written.
         """
         path = Path(path)
         if path.suffix != ".xdmf":
@@ -38,37 +53,114 @@ class FieldWriter:
         if not functions:
             raise ValueError("functions: give at least one name -> Function to write")
         self.path = path
+        self.folder = path.with_suffix("")
+        self.comm = comm
         self.functions = dict(functions)
         for name, f in self.functions.items():
             f.name = name
-        if comm.rank == 0:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        comm.barrier()
-        self._file = None
         self.count = 0
-        with hdf5_errors(path):
-            self._file = dolfinx.io.XDMFFile(comm, str(path), "w")
-            self._file.write_mesh(mesh)
+        self._series: dict[str, ET.Element] = {}  # rank 0: each function's temporal collection
+        self._mesh_grid = None
+        if comm.rank == 0:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            for old in self.folder.glob("[0-9]*.h5"):  # a series of this name that a restart replaces
+                old.unlink()
+        comm.barrier()
+        root = self._write_file("mesh", lambda file: file.write_mesh(mesh))
+        if root is not None:
+            self._mesh_grid = root.find("Domain/Grid")
+            self._write_index()
 
     def write(self, t: float) -> None:
-        """Append every function at time t [s] (collective); OSError if the file cannot be written."""
-        with hdf5_errors(self.path):
-            for f in self.functions.values():
-                self._file.write_function(f, t)
+        """Write every function at time t [s] into a file of its own, then add it to the index (collective).
+
+        OSError if a file cannot be written.
+        """
+
+        def fill(file):
+            with _quiet():  # DOLFINx warns that the file has no mesh: the index holds it
+                for f in self.functions.values():
+                    file.write_function(f, t)
+
+        root = self._write_file(f"{self.count:06d}", fill)
+        if root is not None:
+            for grid in root.findall("Domain/Grid"):
+                name = grid.get("Name")
+                series = self._series.setdefault(name, ET.Element("Grid", grid.attrib))
+                series.extend(grid.findall("Grid"))
+            self._write_index()
         self.count += 1
 
     def close(self) -> None:
-        """Close the file (collective); a second call does nothing, even after a failed close (OSError)."""
-        file, self._file = self._file, None
-        if file is not None:
-            with hdf5_errors(self.path):
-                file.close()
+        """Nothing stays open between writes; kept so that a FieldWriter closes like every other writer."""
 
     def __enter__(self) -> FieldWriter:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    # ------------------------------------------------------------------------------------------ files
+    def _write_file(self, stem: str, fill) -> ET.Element | None:
+        """`fill(XDMFFile)` into `<folder>/<stem>.h5` through a temporary name (collective).
+
+        Returns, on rank 0, the temporary XDMF document with its data items pointing at the final file (as
+        seen from the index); None on the other ranks.
+        """
+        tmp = self.folder / f".{stem}.tmp.xdmf"
+        final = self.folder / f"{stem}.h5"
+        with hdf5_errors(final):
+            file = dolfinx.io.XDMFFile(self.comm, str(tmp), "w")
+            try:
+                fill(file)
+            except BaseException:
+                with suppress(RuntimeError):
+                    file.close()
+                raise
+            file.close()
+        if self.comm.rank != 0:
+            return None
+        root = ET.parse(tmp).getroot()
+        tmp_h5 = tmp.with_suffix(".h5")
+        target = f"{self.folder.name}/{final.name}"
+        for item in root.iter("DataItem"):
+            file_name, sep, dataset = (item.text or "").strip().partition(":")
+            if sep and file_name == tmp_h5.name:
+                item.text = f"{target}:{dataset}"
+        fd = os.open(tmp_h5, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp_h5, final)
+        fsync_folder(self.folder)
+        tmp.unlink()
+        return root
+
+    def _write_index(self) -> None:
+        """Replace the index (rank 0): the mesh, then each function's series of times."""
+        root = ET.Element("Xdmf", {"Version": "3.0"})
+        domain = ET.SubElement(root, "Domain")
+        domain.append(self._mesh_grid)
+        for name in self.functions:
+            if name in self._series:
+                domain.append(self._series[name])
+        ET.indent(root, space="  ")
+        body = ET.tostring(root, encoding="unicode")
+        if f'xmlns:xi="{XINCLUDE}"' not in body:  # (only serialised once an xi:include is in the tree)
+            body = body.replace("<Xdmf ", f'<Xdmf xmlns:xi="{XINCLUDE}" ', 1)
+        atomic_write_text(self.path, '<?xml version="1.0"?>\n<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>\n' + body + "\n")
+
+
+@contextmanager
+def _quiet():
+    """DOLFINx's log below errors silenced inside the block."""
+    level = dolfinx.log.get_log_level()
+    dolfinx.log.set_log_level(dolfinx.log.LogLevel.ERROR)
+    try:
+        yield
+    finally:
+        dolfinx.log.set_log_level(level)
 
 
 # ----------------------------------------------------------------------------------- HDF5's error reports

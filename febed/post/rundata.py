@@ -120,8 +120,8 @@ def inlet_velocity(case: dict) -> float:
 
 
 def _mesh_box_h5(run_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    h5 = run_dir / "fields.h5"
-    if not h5.is_file():
+    h5 = next((f for f in (run_dir / "fields" / "mesh.h5", run_dir / "fields.h5") if f.is_file()), None)
+    if h5 is None:  # (fields.h5: the single field file of run folders written before fields/)
         return None
     try:
         import h5py
@@ -155,7 +155,7 @@ def _builtin_box(case: dict) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def run_info(run_dir: str | Path, box: tuple | None = None) -> RunInfo:
-    """The scales of a run: resolved case + domain box (given, else the mesh in fields.h5, else built-in)."""
+    """The scales of a run: resolved case + domain box (given, else the mesh of the field output, else built-in)."""
     run_dir = Path(run_dir)
     case = read_case(run_dir)
     if box is not None:
@@ -166,7 +166,7 @@ def run_info(run_dir: str | Path, box: tuple | None = None) -> RunInfo:
         found = _mesh_box_h5(run_dir) or _builtin_box(case)
         if found is None:
             raise ValueError(
-                f"run_dir {run_dir}: cannot tell the domain box (no fields.h5 mesh, not a built-in mesh); give box="
+                f"run_dir {run_dir}: cannot tell the domain box (no fields/mesh.h5, not a built-in mesh); give box="
             )
         lo, hi = found
     dim = 2 if hi[2] - lo[2] <= 0.0 else 3

@@ -2,8 +2,8 @@
 
 The void fraction is the uniform `gas.void_fraction`, or (Python API) a callable eps(x, t) of the node
 coordinates x (n, 3) and the time t returning (n,) values in (0, 1]. Fields u, p, ε are written as XDMF
-(`fields.xdmf` in the output folder; `fields.restart<k>.xdmf` after the k-th restart) every
-`output.field_interval`.
+(`fields.xdmf` and its folder `fields/` in the output folder, `febed.io.fields`; `fields.restart<k>.xdmf`
+after the k-th restart) every `output.field_interval`.
 
 Like coupled and pure-DEM runs, a gas-only run (`GasRun`) shows a progress line (simulated time, step, Δt,
 CFL, Poisson iterations, wall time per simulated second, ETA) every `output.progress_interval` wall seconds,
