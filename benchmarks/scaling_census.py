@@ -3,7 +3,8 @@
 For a case's mesh and a particle snapshot, and a number of parts P, the census repeats febed's decomposition:
 
 * cells: `febed.meshing.rcb_owners` on the cell centroids, cutting the horizontal axes only, on the cells in the
-  order the mesh reader hands them to DOLFINx (the partition a run on P ranks gets);
+  order the mesh reader hands them to DOLFINx (the partition a run on P ranks gets); or, for a gas partition
+  decoupled from the particles, cutting every axis (compact blocks);
 * gas nodes (the Q1 nodes are the mesh vertices): each rank holds its owned cells and, as ghosts, the cells
   sharing a facet with them (DOLFINx's shared-facet ghost mode); a vertex of the cells of k ranks counts 1/k
   to each (DOLFINx spreads the shared vertices evenly: 13,979 and 13,993 owned nodes of 27,972 on 2 ranks of
@@ -89,9 +90,10 @@ def case_mesh(case_path: str | Path, cache_dir: Path) -> HexGrid:
     return HexGrid(got["cells"], got["x"])
 
 
-def partition(mesh: HexGrid, nparts: int) -> np.ndarray:
-    """Owner part of each cell: febed's partition on `nparts` ranks."""
-    return meshing.rcb_owners(mesh.centroid, nparts, axes=(0, 1))
+def partition(mesh: HexGrid, nparts: int, axes: tuple[int, ...] = (0, 1)) -> np.ndarray:
+    """Owner part of each cell: febed's partition on `nparts` ranks (cut across the horizontal axes), or one
+    cutting `axes` (0, 1, 2: compact blocks, for a gas partition that particles need not follow)."""
+    return meshing.rcb_owners(mesh.centroid, nparts, axes=axes)
 
 
 def node_census(mesh: HexGrid, owner: np.ndarray, nparts: int) -> dict[str, np.ndarray]:
@@ -227,6 +229,7 @@ def work_census(
     pairs: tuple[np.ndarray, np.ndarray],
     width: float,
     axes: tuple[int, ...] = (0, 2),
+    cells: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The particle census of a decomposition of the particles by DEM work, decoupled from the mesh's.
 
@@ -236,6 +239,10 @@ def work_census(
     place of its cells (`HaloBins`). The coupling stays with the gas partition: a particle whose cell
     another rank owns goes there at every gas step and its forces come back (`transfer_out`, `transfer_in`,
     `transfer_nbrs`); `cell_owner` is the owner of each particle's cell.
+
+    With `cells` (each particle's cell) it also counts, for a coupling done by the particles' owners, the
+    nodes of their particles' cells that other ranks' cells hold (`foreign_nodes`: the gas values a rank
+    receives and the nodal sums it sends back each gas step) and those ranks (`node_nbrs`).
     """
     i, j = pairs
     deg = np.bincount(np.concatenate([i, j]), minlength=pos.shape[0])
@@ -243,7 +250,8 @@ def work_census(
     halo = HaloBins(mesh, None, nparts, width, part_boxes=boxes)
     near = halo.marked[:, halo.bins(pos)]  # (nparts, particles): inside the part's inflated box's bins
     keys = ("owned", "ghosts", "sent", "pairs", "force_pairs", "ghost_nbrs", "transfer_out", "transfer_in")
-    out = {k: np.zeros(nparts, dtype=np.int64) for k in (*keys, "transfer_nbrs")}
+    extra = ("transfer_nbrs", "foreign_nodes", "node_nbrs") if cells is not None else ("transfer_nbrs",)
+    out = {k: np.zeros(nparts, dtype=np.int64) for k in (*keys, *extra)}
     out["owned"][:] = np.bincount(owner, minlength=nparts)
     for p in range(nparts):
         g = near[p] & (owner != p)
@@ -261,6 +269,9 @@ def work_census(
         out["transfer_out"][p] = int(away.sum())
         out["transfer_in"][p] = int(come.sum())
         out["transfer_nbrs"][p] = np.unique(np.concatenate([cell_owner[away], owner[come]])).size
+        if cells is not None:
+            out["foreign_nodes"][p] = np.unique(mesh.cells[cells[away]]).size
+            out["node_nbrs"][p] = np.unique(cell_owner[away]).size
     out["powner"] = owner
     return out
 

@@ -6,7 +6,10 @@ and the bytes sent per gas step, over particle snapshots of a bubbling bed. The 
 with single-core costs per unit of work measured on the same bed (`scaling_measure.py`, serially, once with
 the serial pressure solver and once with the parallel one) and an interconnect of stated bandwidth and
 latency, takes the slowest rank of each phase (DEM, coupling, gas), and checks its 2-rank efficiency
-against a measured one of the same state and its loads against a 2-rank run (docs/scaling.md):
+against a measured one of the same state and its loads against a 2-rank run (docs/scaling.md). Besides
+febed's decomposition it projects three that febed does not have (`VARIANTS`): the particles by DEM work,
+coupled by the owners of their cells, with febed's mesh partition or the mesh in compact blocks, and the
+latter coupled by the particles' owners through a nodal exchange:
 
     python benchmarks/scaling_measure.py --restart RUN_DIR                        # serial costs
     python benchmarks/scaling_measure.py --restart RUN_DIR --warmup 0.001 --sim-time 0.001 --rebuilds 40 \
@@ -102,20 +105,27 @@ def take_census(run: Path, t0: float, t1: float, skin_ratio: float) -> dict:
         out[f"{name}/h_min"] = h[0]
         for P in RANKS:
             owner = sc.partition(mesh, P)
+            blocks = sc.partition(mesh, P, axes=(0, 1, 2))  # a gas partition the particles need not follow
             for k, v in sc.node_census(mesh, owner, P).items():
                 out[f"{name}/{P}/{k}"] = v
+            for k, v in sc.node_census(mesh, blocks, P).items():
+                out[f"{name}/{P}/blocks/{k}"] = v
             width = 1.2 * (states[0][2].max() * (1 + skin_ratio))
             halo = sc.HaloBins(mesh, owner, P, width)
-            rows, work = [], []
-            prev = prev_w = None
+            rows, work, work_b = [], [], []
+            prev = prev_w = prev_b = None
             for (_, pos, d, gid), (skin, pr) in zip(states, pairs, strict=True):
                 c = sc.particle_census(mesh, owner, P, halo, pos, d, skin, pr)
                 w = sc.work_census(mesh, c["powner"], P, pos, pr, width)
+                pc = mesh.locate(pos)
+                b = sc.work_census(mesh, blocks[pc], P, pos, pr, width, cells=pc)
                 prev = _migrated(c, prev, gid, P)
                 prev_w = _migrated(w, prev_w, gid, P)
+                prev_b = _migrated(b, prev_b, gid, P)
                 rows.append(c)
                 work.append(w)
-            for tag, got in (("", rows), ("work/", work)):
+                work_b.append(b)
+            for tag, got in (("", rows), ("work/", work), ("blocks/", work_b)):
                 for k in got[0]:
                     if k != "powner":
                         out[f"{name}/{P}/{tag}{k}"] = np.array([r[k] for r in got])  # (snapshots [+ checkpoint], P)
@@ -177,17 +187,43 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None) -
     }
 
 
-def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(None), work: bool = False) -> dict:
+# The decompositions of the projection: particles with the cells of febed's partition (what febed does); the
+# particles by DEM work apart from that partition, coupled by the owners of their cells; the same particles
+# with the gas in compact blocks (every axis cut), which only a decoupled particle decomposition allows,
+# coupled by the owners of their cells ("blocks") or by their own owners, exchanging nodal values ("nodal").
+VARIANTS = {
+    "cells": "particles with their cells",
+    "work": "particles by DEM work, apart from the mesh",
+    "blocks": "particles by DEM work, the gas in compact blocks",
+    "nodal": "particles by DEM work, the gas in compact blocks, coupled by the particles' owners",
+}
+# The nodal exchange of a coupling done by the particles' owners, per node of another rank's cells, each gas
+# step: the gas values a particle's drag and interpolation need (u, ε, ∇p: 7 doubles) to the particles' owner,
+# the nodal sums of the particles (solid volume, K, K v̄: 5 doubles) back.
+NODAL_BYTES = (7 + 5) * 8
+
+
+def _keys(name: str, P: int, variant: str) -> tuple[str, str]:
+    """Census key prefixes of the particle loads and of the gas loads of a decomposition."""
+    if P == 1 or variant == "cells":
+        return f"{name}/{P}/", f"{name}/{P}/"
+    if variant in ("blocks", "nodal"):
+        return f"{name}/{P}/blocks/", f"{name}/{P}/blocks/"
+    return f"{name}/{P}/{variant}/", f"{name}/{P}/"
+
+
+def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(None), variant: str = "cells") -> dict:
     """Seconds per simulated second of each phase on the slowest rank (mean over the snapshots).
 
-    `work`: the particles decomposed by DEM work apart from the mesh (`scaling_census.work_census`); the
-    coupling then also sends each particle whose cell another rank owns there and its forces back.
+    `variant` (`VARIANTS`): with the particles decomposed by DEM work apart from the mesh
+    (`scaling_census.work_census`), the coupling also sends each particle whose cell another rank owns there
+    and its forces back.
     """
     L, B = net["latency"], net["bandwidth"]
     red = L * math.ceil(math.log2(P)) if P > 1 else 0.0
     nd, nb = cost["dem_steps_per_s"], cost["builds_per_s"]
     ng = cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1.0)
-    key = f"{name}/{P}/work/" if work and P > 1 else f"{name}/{P}/"
+    key, gkey = _keys(name, P, variant)
     fp = c[f"{key}force_pairs"][rows]  # (snapshots, P)
     sent = c[f"{key}sent"][rows]
     nbr = c[f"{key}ghost_nbrs"][rows]
@@ -205,13 +241,21 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
     listed = c[f"{key}pairs"][rows]
     extra = listed * cost["us_per_pair_keyed_rebuild"] + owned * cost["us_per_particle_locate"]
     dem = dem + nb * extra * 1e-6 * (P > 1)  # the parallel rebuild's own work: history by key, locating
-    cpl = ng * c[f"{name}/{P}/owned"][rows] * cost["us_per_particle_step"] * 1e-6  # on the owners of the cells
-    if key != f"{name}/{P}/":  # particles to the owners of their cells and their forces back
+    coupled = c[f"{key}owned"][rows]  # the particles each rank couples: in its cells, or its own
+    if variant == "nodal" and P > 1:  # gas values of other ranks' nodes in, the particles' nodal sums out
+        cpl = ng * coupled * cost["us_per_particle_step"] * 1e-6
+        foreign = c[f"{key}foreign_nodes"][rows]
+        cpl = cpl + ng * (foreign * NODAL_BYTES / B + 2 * c[f"{key}node_nbrs"][rows] * L + TRANSFER_CALLS)
+    elif key != f"{name}/{P}/":  # particles to the owners of their cells and their forces back
+        coupled = coupled + c[f"{key}transfer_in"][rows] - c[f"{key}transfer_out"][rows]
+        cpl = ng * coupled * cost["us_per_particle_step"] * 1e-6
         moved = c[f"{key}transfer_out"][rows] + c[f"{key}transfer_in"][rows]
         cpl = cpl + ng * (moved * TRANSFER_BYTES / B + 2 * c[f"{key}transfer_nbrs"][rows] * L + TRANSFER_CALLS)
-    nodes = c[f"{name}/{P}/nodes"][None, :]
-    halo = c[f"{name}/{P}/halo"][None, :]
-    hn = c[f"{name}/{P}/halo_nbrs"][None, :]
+    else:
+        cpl = ng * coupled * cost["us_per_particle_step"] * 1e-6
+    nodes = c[f"{gkey}nodes"][None, :]
+    halo = c[f"{gkey}halo"][None, :]
+    hn = c[f"{gkey}halo_nbrs"][None, :]
     gas = ng * (
         nodes * cost["us_per_node_step" if name == "C2" and P == 1 else "us_per_node_step_iter"] * 1e-6
         + GAS_EXCHANGES * (hn * L + halo * GAS_VALUES * 8 / B)
@@ -272,7 +316,7 @@ def main() -> None:
     print(
         f"single-core costs (CPU time, serial C2 window t = {m1['per_rank'][0]['t0']:.3f} s + {cost['sim']:.3f} s): "
         f"{cost['us_per_pair_step'] * 1e3:.1f} ns per force pair per DEM step, "
-        f"{cost['us_per_node_step']:.3f} µs per gas node per gas step (Cholesky pressure solve; CG + GAMG "
+        f"{cost['us_per_node_step']:.3f} µs per gas node per gas step (the serial default pressure solve; CG + GAMG "
         f"{cost['us_per_node_step_iter']:.3f}), "
         f"{cost['us_per_particle_step']:.3f} µs per particle per gas step (coupling); "
         f"{cost['gas_steps_per_s']:.0f} gas steps, {cost['dem_steps_per_s']:.0f} DEM steps, "
@@ -284,31 +328,40 @@ def main() -> None:
         f"interconnect: {args.bandwidth / 1e9:g} GB/s, {args.latency * 1e6:g} µs per message; reductions log2(P) "
         f"latencies"
     )
-    result = {"costs": cost, "net": net, "meshes": {}, "meshes_work": {}}
+    needs = {"nodal": "C2/2/blocks/foreign_nodes"}
+    variants = [v for v in VARIANTS if needs.get(v, f"{_keys('C2', 2, v)[0]}owned") in census]
+    if len(variants) < len(VARIANTS):
+        print("note: the cached census predates some decompositions; give --run RUN_DIR to count them")
+    result = {"costs": cost, "net": net, **{_result_key(v): {} for v in variants}}
     for name in MESHES:
         label = "intermediate" if name == "C2" else "fine"
-        for work in (False, True):
-            how = "particles by DEM work, apart from the mesh" if work else "particles with their cells"
+        for variant in variants:
             print(
-                f"\n{name} ({label} mesh, {int(census[f'{name}/1/nodes'][0])} nodes), {how}: loads max/mean over "
-                f"ranks (mean over snapshots) and projected efficiency"
+                f"\n{name} ({label} mesh, {int(census[f'{name}/1/nodes'][0])} nodes), {VARIANTS[variant]}: loads "
+                f"max/mean over ranks (mean over snapshots) and projected efficiency"
             )
-            rows = efficiency_rows(census, name, cost, net, snap, work)
+            rows = efficiency_rows(census, name, cost, net, snap, variant)
             for r in rows:
                 if r["P"] >= 8:
+                    how = "" if variant == "cells" else f", {VARIANTS[variant]}"
                     print(
-                        f"{name}{', particles by work' if work else ''}: projected efficiency at {r['P']} ranks: "
+                        f"{name}{how}: projected efficiency at {r['P']} ranks: "
                         f"{r['E_total']:.0%} (DEM {r['E_dem']:.0%}, coupling {r['E_coupling']:.0%}, gas "
                         f"{r['E_gas']:.0%})"
                     )
-            result["meshes_work" if work else "meshes"][name] = rows
+            result[_result_key(variant)][name] = rows
     if census.get("checkpoint") is not None and bool(census["checkpoint"]):
         validate(census, cost, net, m1, m2, result)
     plot(result)
     (OUT / "scaling_projection.json").write_text(json.dumps(result, indent=1, default=float))
 
 
-def efficiency_rows(census: dict, name: str, cost: dict, net: dict, snap: slice, work: bool) -> list[dict]:
+def _result_key(variant: str) -> str:
+    """The result's table of a decomposition: meshes (febed's), meshes_work, meshes_blocks."""
+    return "meshes" if variant == "cells" else f"meshes_{variant}"
+
+
+def efficiency_rows(census: dict, name: str, cost: dict, net: dict, snap: slice, variant: str) -> list[dict]:
     """Per rank count: the loads (max/mean), the bytes per gas step and the projected efficiencies (printed)."""
     t1 = phase_times(census, name, 1, cost, net, snap)
     print(
@@ -317,17 +370,19 @@ def efficiency_rows(census: dict, name: str, cost: dict, net: dict, snap: slice,
     )
     rows = []
     for P in RANKS:
-        tp = phase_times(census, name, P, cost, net, snap, work)
-        key = f"{name}/{P}/work/" if work and P > 1 else f"{name}/{P}/"
+        tp = phase_times(census, name, P, cost, net, snap, variant)
+        key, gkey = _keys(name, P, variant)
         own = census[f"{key}owned"][snap]
         mm = lambda a: float(np.mean(a.max(axis=1) / np.maximum(a.mean(axis=1), 1)))  # noqa: E731
         ghost = float(np.mean(census[f"{key}ghosts"][snap].sum(axis=1) / own.sum(axis=1)))
-        nodes = census[f"{name}/{P}/nodes"]
-        halo = float(census[f"{name}/{P}/halo"].max() / max(nodes.min(), 1))
+        nodes = census[f"{gkey}nodes"]
+        halo = float(census[f"{gkey}halo"].max() / max(nodes.min(), 1))
         n_sub = cost["dem_steps_per_s"] / (cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1))
         kb = float(np.mean(census[f"{key}sent"][snap].max(axis=1))) * UPDATE_BYTES * n_sub / 1e3
-        kb += float(census[f"{name}/{P}/halo"].max()) * GAS_EXCHANGES * GAS_VALUES * 8 / 1e3
-        if key.endswith("work/"):
+        kb += float(census[f"{gkey}halo"].max()) * GAS_EXCHANGES * GAS_VALUES * 8 / 1e3
+        if variant == "nodal" and P > 1:
+            kb += float(np.mean(census[f"{key}foreign_nodes"][snap].max(axis=1))) * NODAL_BYTES / 1e3
+        elif key != f"{name}/{P}/":
             moved = census[f"{key}transfer_out"][snap] + census[f"{key}transfer_in"][snap]
             kb += float(np.mean(moved.max(axis=1))) * TRANSFER_BYTES / 1e3
         e = {k: t1[k] / (P * tp[k]) for k in ("dem", "coupling", "gas", "total")}
@@ -410,7 +465,7 @@ def plot(result) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 6), sharey=True)
     for ax, (name, rows) in zip(axes, result["meshes"].items(), strict=True):
         P = [r["P"] for r in rows]
         for key, lab, st in (
@@ -423,6 +478,13 @@ def plot(result) -> None:
         for key, lab, st in (("E_total", "whole step", "k--o"), ("E_dem", "DEM", "C0--s")):
             work = result["meshes_work"][name]
             ax.plot(P, [r[key] for r in work], st, mfc="none", label=f"{lab}, particles by DEM work")
+        for variant, st, lab in (
+            ("blocks", "m:D", "whole step, particles by DEM work, gas in blocks"),
+            ("nodal", "g-.v", "whole step, particles by DEM work, gas in blocks, coupled by the particles' owners"),
+        ):
+            if f"meshes_{variant}" in result:
+                rows_v = result[f"meshes_{variant}"][name]
+                ax.plot(P, [r["E_total"] for r in rows_v], st, mfc="none", label=lab)
         if name == "C2" and "validation" in result:
             v = result["validation"]
             ax.plot([2], [v["reference"]], "r*", ms=12, label="measured, 2 ranks, the checkpoint's state")
@@ -435,8 +497,9 @@ def plot(result) -> None:
         ax.set_ylim(0, 1.05)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("projected parallel efficiency")
-    axes[0].legend(loc="lower left", fontsize=8)
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.2, 1, 1))
     fig.savefig(OUT / "scaling_projection.png", dpi=120)
     print(f"\nwritten {OUT / 'scaling_projection.png'}")
 
