@@ -261,11 +261,15 @@ def _run(args) -> int:
         forget_state(outdir)
         log = get_logger(outdir, verbose=args.verbose)
         try:
+            from febed.io.fields import remove_temporaries as remove_field_temporaries
+
             lock = held_lock(outdir)
             if lock is not None and lock.note:
                 log.warning(f"note: {lock.note}")
             for gone in remove_temporaries(outdir / FOLDER) if MPI.COMM_WORLD.rank == 0 else []:
                 log.info(f"removed {gone.name}: the unfinished checkpoint of a run killed while writing it")
+            for gone in remove_field_temporaries(outdir) if MPI.COMM_WORLD.rank == 0 else []:
+                log.info(f"removed {gone.parent.name}/{gone.name}: an unfinished field file of a run killed writing it")
             for note in pf.notes:
                 log.warning(f"note: {note}")
             log.info(pf.estimate.text())

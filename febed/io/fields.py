@@ -10,7 +10,8 @@ superblock and object headers are written at close), so one file held open for a
 the run to a `kill -9`, an out-of-memory kill or a batch system's time limit. Each output time is therefore
 its own file: written under a temporary name (`.<k>.tmp.h5`), closed, flushed to disk, renamed, and only then
 added to the index, which is itself replaced atomically (`febed.io.atomic`). Every file the index names is
-complete; a process killed during a write leaves at most that write's temporary file.
+complete; a process killed during a write leaves at most that write's temporary files, which the folder's
+next run removes (`remove_temporaries`).
 
 A failed write (a full disk, an I/O error) raises OSError naming the file and the operating system's error,
 as any other file write does: DOLFINx reports HDF5's failures as a bare RuntimeError ("Failed to close HDF5
@@ -107,7 +108,7 @@ class FieldWriter:
         Returns, on rank 0, the temporary XDMF document with its data items pointing at the final file (as
         seen from the index); None on the other ranks.
         """
-        tmp = self.folder / f".{stem}.tmp.xdmf"
+        tmp = self.folder / f".{stem}.tmp.xdmf"  # (matches TMP_GLOB, as does the .h5 beside it)
         final = self.folder / f"{stem}.h5"
         with hdf5_errors(final):
             file = dolfinx.io.XDMFFile(self.comm, str(tmp), "w")
@@ -150,6 +151,24 @@ class FieldWriter:
         if f'xmlns:xi="{XINCLUDE}"' not in body:  # (only serialised once an xi:include is in the tree)
             body = body.replace("<Xdmf ", f'<Xdmf xmlns:xi="{XINCLUDE}" ', 1)
         atomic_write_text(self.path, '<?xml version="1.0"?>\n<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>\n' + body + "\n")
+
+
+TMP_GLOB = ".*.tmp.*"  # a write's temporary files in a series' folder: .<stem>.tmp.xdmf and .<stem>.tmp.h5
+
+
+def remove_temporaries(outdir: str | Path) -> list[Path]:
+    """Remove the temporary files of field writes that never finished (a run killed while writing).
+
+    Looks in every field series folder of the run folder `outdir` (`fields/`, `fields.restart<k>/`). Call it
+    only while holding the run folder's lock (`febed.io.rundir.lock_output`). Returns the files removed.
+    """
+    gone = []
+    for folder in sorted(Path(outdir).glob("fields*/")):
+        for f in sorted(folder.glob(TMP_GLOB)):
+            with suppress(FileNotFoundError):
+                f.unlink()
+                gone.append(f)
+    return gone
 
 
 @contextmanager

@@ -2,7 +2,8 @@
 
 What is checked: the index lists the times written, every data item it names is a complete file holding the
 values written (the nodal x coordinate, matched against the mesh file's geometry), the mesh's
-cells name every node, and a process killed with SIGKILL while writing leaves an index whose every file opens.
+cells name every node, and a process killed with SIGKILL while writing leaves an index whose every file opens
+(and temporary files only, which the next run removes).
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 
 from mpi4py import MPI
@@ -20,7 +22,7 @@ import h5py
 import numpy as np
 import pytest
 
-from febed.io.fields import FieldWriter
+from febed.io.fields import FieldWriter, remove_temporaries
 
 
 def index_items(xdmf):
@@ -81,7 +83,7 @@ KILLED = """
 import sys
 from mpi4py import MPI
 import dolfinx.fem, dolfinx.mesh
-from febed.io.fields import FieldWriter
+from febed.io.fields import FieldWriter, remove_temporaries
 mesh = dolfinx.mesh.create_unit_square(MPI.COMM_SELF, 300, 300)
 V = dolfinx.fem.FunctionSpace(mesh, ("P", 1))
 f = dolfinx.fem.Function(V)
@@ -99,8 +101,11 @@ def test_a_run_killed_while_writing_leaves_every_indexed_file_readable(tmp_path)
     index = tmp_path / "fields.xdmf"
     proc = subprocess.Popen([sys.executable, "-c", KILLED, str(index)], stdout=subprocess.PIPE, text=True)
     try:
-        for _ in range(3):  # three complete writes, then killed in the middle of the next ones
+        seen = []
+        for _ in range(3):  # three complete writes, then killed about halfway through the next one
             assert proc.stdout.readline().strip() != ""
+            seen.append(time.perf_counter())
+        time.sleep(0.5 * (seen[2] - seen[1]))
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
@@ -111,3 +116,6 @@ def test_a_run_killed_while_writing_leaves_every_indexed_file_readable(tmp_path)
     named = {text.partition(":")[0] for _, text in index_items(index)}
     complete = {f"fields/{f.name}" for f in (tmp_path / "fields").iterdir() if not f.name.startswith(".")}
     assert named <= complete
+    left = {f for f in (tmp_path / "fields").iterdir() if f.name.startswith(".")}  # a write cut short, if any
+    assert set(remove_temporaries(tmp_path)) == left
+    assert {f"fields/{f.name}" for f in (tmp_path / "fields").iterdir()} == complete
