@@ -486,8 +486,9 @@ def _gas_step(case: Case, md, ident: dict, speed: float = 1.0) -> tuple[float, f
     g = case.gas
     h = _cell_size(md, ident)
     _, u = _fastest_inlet(case)
-    cfl_dt = g.cfl * h / u if u > 0 else math.inf
-    fourier_dt = g.fourier * h * h * g.density / g.viscosity
+    k = g.convection_substeps  # each explicit sub-step within the limits
+    cfl_dt = k * g.cfl * h / u if u > 0 else math.inf
+    fourier_dt = k * g.fourier * h * h * g.density / g.viscosity
     return max(min(g.dt_max, cfl_dt / speed, fourier_dt), g.dt_min), cfl_dt
 
 

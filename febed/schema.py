@@ -246,6 +246,16 @@ SCHEMA: dict[str, dict[str, Param]] = {
             lo=1,
             hi=10,
         ),
+        "convection_substeps": Param(
+            1,
+            "-",
+            "explicit sub-steps of the momentum predictor per gas step, each within the cfl and fourier limits: "
+            "the gas step, its pressure solve and the coupling take up to this many times the convective step "
+            "(the pressure and the drag of the step held through them)",
+            int,
+            lo=1,
+            hi=8,
+        ),
         "drag_number": Param(
             0.0,
             "",
@@ -658,6 +668,7 @@ CHANGEABLE = (
     "gas.dt_max",
     "gas.drag_number",
     "gas.pressure_passes",
+    "gas.convection_substeps",
     "gas.drag_weighted_projection",
     "contact.skin",
     "gas.petsc_options",
