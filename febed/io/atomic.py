@@ -1,7 +1,8 @@
 """Atomic file writes: the one way febed replaces a file, so that no reader and no crash sees a half-written one.
 
-Every writer of a run's files (checkpoints, status.json, the resolved case, probes, particle files, meshes)
-goes through `atomic_path` or its shorthands `atomic_open`, `atomic_write_bytes` and `atomic_write_text`:
+Every writer of a run's files (checkpoints, status.json, the resolved case, probes, particle files, meshes,
+field files) goes through `atomic_path` or its shorthands `atomic_open`, `atomic_write_bytes` and `atomic_write_text`
+(or `publish`, for a file that another library wrote under a temporary name febed chose):
 the data go to a temporary file in the target's folder, named `.<name>.<random>.tmp`; once complete it is
 flushed to disk (fsync), renamed over the target (`os.replace`, atomic on POSIX) and the folder is synced so
 that the rename survives a power cut. A file with its final name is therefore always complete.
@@ -107,6 +108,26 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, sync: bool = True, 
     """Replace `path` by a file holding `text`, atomically (see `atomic_path`)."""
     with atomic_open(path, "w", sync=sync, encoding=encoding) as f:
         f.write(text)
+
+
+def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Give a complete file that a writer made under the temporary name `tmp` its final name `path`.
+
+    For writers that choose their temporary name themselves and write through another process or library
+    (HDF5 through DOLFINx, `febed.io.fields`): `tmp` is flushed to disk, renamed over `path` and the folder
+    synced, as `atomic_path` does. An OSError names `path`.
+    """
+    tmp, path = Path(tmp), Path(path)
+    try:
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except OSError as e:
+        raise _naming(e, path) from None
+    fsync_folder(path.parent)
 
 
 def sync_close(f: IO) -> None:

@@ -34,7 +34,7 @@ from mpi4py import MPI
 import dolfinx.io
 import dolfinx.log
 
-from febed.io.atomic import atomic_write_text, fsync_folder
+from febed.io.atomic import atomic_write_text, publish
 
 XINCLUDE = "http://www.w3.org/2001/XInclude"
 ET.register_namespace("xi", XINCLUDE)
@@ -128,13 +128,7 @@ class FieldWriter:
             file_name, sep, dataset = (item.text or "").strip().partition(":")
             if sep and file_name == tmp_h5.name:
                 item.text = f"{target}:{dataset}"
-        fd = os.open(tmp_h5, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp_h5, final)
-        fsync_folder(self.folder)
+        publish(tmp_h5, final)
         tmp.unlink()
         return root
 

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from febed.io import atomic, checkpoint, particles, probes, rundir
-from febed.io.atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text, remove_temporaries
+from febed.io import atomic, checkpoint, fields, particles, probes, rundir
+from febed.io.atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text, publish, remove_temporaries
 
 
 def test_a_write_replaces_the_file_and_leaves_nothing_else(tmp_path):
@@ -95,8 +95,20 @@ def test_every_writer_goes_through_this_module():
     """The run's writers use these helpers (no private copy of the temporary-file dance)."""
     assert checkpoint.atomic_open is atomic_open and probes.atomic_open is atomic_open
     assert particles.atomic_write_bytes is atomic_write_bytes and rundir.atomic_write_text is atomic_write_text
+    assert fields.publish is publish
     package = Path(checkpoint.__file__).resolve().parents[1]
     for path in package.rglob("*.py"):  # every febed module but this one
         if path.name != "atomic.py":
             source = path.read_text()
             assert "os.replace" not in source and "mkstemp" not in source, path
+
+
+def test_publish_renames_a_finished_file_and_names_the_target_on_failure(tmp_path):
+    tmp, target = tmp_path / ".x.tmp.h5", tmp_path / "x.h5"
+    tmp.write_bytes(b"data")
+    target.write_bytes(b"old")
+    publish(tmp, target)
+    assert target.read_bytes() == b"data" and not tmp.exists()
+    with pytest.raises(FileNotFoundError) as info:
+        publish(tmp, target)  # nothing to publish
+    assert info.value.filename == str(target) and target.read_bytes() == b"data"
