@@ -37,6 +37,15 @@ def _naming(err: OSError, path: Path) -> OSError:
     return OSError(err.errno, err.strerror, str(path))  # OSError picks the subclass (FileNotFoundError, ...)
 
 
+def _fsync(path: Path) -> None:
+    """Flush a closed file's data to disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def fsync_folder(folder: Path) -> None:
     """Flush a folder's entries (a rename into it) to disk; file systems that cannot sync a folder are skipped."""
     try:
@@ -70,11 +79,7 @@ def atomic_path(path: str | os.PathLike, *, suffix: str = TMP_SUFFIX, sync: bool
     try:
         yield tmp
         if sync:
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            _fsync(tmp)
         os.replace(tmp, path)
     except BaseException as e:
         tmp.unlink(missing_ok=True)
@@ -119,11 +124,7 @@ def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
     """
     tmp, path = Path(tmp), Path(path)
     try:
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        _fsync(tmp)
         os.replace(tmp, path)
     except OSError as e:
         raise _naming(e, path) from None
