@@ -34,6 +34,7 @@ from mpi4py import MPI
 import dolfinx.io
 import dolfinx.log
 
+from febed.io import atomic
 from febed.io.atomic import atomic_write_text, publish
 
 XINCLUDE = "http://www.w3.org/2001/XInclude"
@@ -108,7 +109,7 @@ class FieldWriter:
         Returns, on rank 0, the temporary XDMF document with its data items pointing at the final file (as
         seen from the index); None on the other ranks.
         """
-        tmp = self.folder / f".{stem}.tmp.xdmf"  # (matches TMP_GLOB, as does the .h5 beside it)
+        tmp = self.folder / f".{stem}.tmp.xdmf"  # (TMP_SUFFIXES: removed if a kill leaves it, and its .h5)
         final = self.folder / f"{stem}.h5"
         with hdf5_errors(final):
             file = dolfinx.io.XDMFFile(self.comm, str(tmp), "w")
@@ -147,7 +148,7 @@ class FieldWriter:
         atomic_write_text(self.path, '<?xml version="1.0"?>\n<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>\n' + body + "\n")
 
 
-TMP_GLOB = ".*.tmp.*"  # a write's temporary files in a series' folder: .<stem>.tmp.xdmf and .<stem>.tmp.h5
+TMP_SUFFIXES = ("tmp.h5", "tmp.xdmf")  # the temporary files of a write, .<stem>.tmp.h5 and .xdmf (glob ".*.*<suffix>")
 
 
 def remove_temporaries(outdir: str | Path) -> list[Path]:
@@ -156,13 +157,12 @@ def remove_temporaries(outdir: str | Path) -> list[Path]:
     Looks in every field series folder of the run folder `outdir` (`fields/`, `fields.restart<k>/`). Call it
     only while holding the run folder's lock (`febed.io.rundir.lock_output`). Returns the files removed.
     """
-    gone = []
-    for folder in sorted(Path(outdir).glob("fields*/")):
-        for f in sorted(folder.glob(TMP_GLOB)):
-            with suppress(FileNotFoundError):
-                f.unlink()
-                gone.append(f)
-    return gone
+    return [
+        f
+        for folder in sorted(Path(outdir).glob("fields*/"))
+        for suffix in TMP_SUFFIXES
+        for f in atomic.remove_temporaries(folder, "*", suffix)
+    ]
 
 
 @contextmanager
