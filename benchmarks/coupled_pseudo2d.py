@@ -59,7 +59,7 @@ gas_split: dict[str, float] = {}  # the gas time by part of its step (inputs, pr
 gas_step = s.gas.step
 
 
-steps = {"n": 0, "cfl": 0.0, "fourier": 0.0}  # gas steps of the window, their largest CFL and Fourier numbers
+steps = {"n": 0, "cfl": 0.0, "fourier": 0.0, "sub": 0}  # gas steps of the window, largest CFL and Fourier, sub-steps
 
 
 def timed_gas_step(*a, **kw):
@@ -67,6 +67,7 @@ def timed_gas_step(*a, **kw):
     for key, seconds in info.timings.items():
         gas_split[key] = gas_split.get(key, 0.0) + seconds
     steps["n"] += 1
+    steps["sub"] += info.substeps
     steps["cfl"], steps["fourier"] = max(steps["cfl"], info.cfl), max(steps["fourier"], info.fourier)
     return info
 
@@ -102,10 +103,10 @@ if comm.rank == 0:
     print(f"case {case.name}: {sum(counts)} particles on {comm.size} rank(s) {counts}, {s.ma.num_dofs} nodes (rank 0)")
     print(f"set-up + compile + {args.warmup} s warm-up: {t1 - t0:.1f} s; {s.n_sub} DEM sub-steps per gas step")
     print(f"wall time per simulated second: {per_s / 60:.1f} min ({sim:.4f} s simulated in {t2 - t1:.1f} s)")
-    k = case.gas.convection_substeps
+    k, sub = case.gas.convection_substeps, steps["sub"] / max(steps["n"], 1)
     print(
         f"  {steps['n']} gas steps of {sim / max(steps['n'], 1):.3g} s on average (largest CFL {steps['cfl']:.3f}, "
-        f"Fourier {steps['fourier']:.3f}; {k} convective sub-step{'s' if k > 1 else ''} per gas step)"
+        f"Fourier {steps['fourier']:.3f}; {sub:.2f} convective sub-steps per gas step on average, at most {k})"
     )
     for k, v in split.items():
         print(f"  {k:9s} {v / sim / 60:7.2f} min per simulated s ({100 * v / (t2 - t1):4.1f} %)")

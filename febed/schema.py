@@ -249,9 +249,10 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "convection_substeps": Param(
             1,
             "-",
-            "explicit sub-steps of the momentum predictor per gas step, each within the cfl and fourier limits: "
-            "the gas step, its pressure solve and the coupling take up to this many times the convective step "
-            "(the pressure and the drag of the step held through them)",
+            "largest number of explicit sub-steps of the momentum predictor per gas step, each within the cfl and "
+            "fourier limits: the gas step, its pressure solve and the coupling take up to this many times the "
+            "convective step (the pressure and the drag of the step held through them); a step needs only as many "
+            "as its CFL and Fourier numbers ask, one where dt_max is below the convective step",
             int,
             lo=1,
             hi=8,

@@ -71,16 +71,19 @@ Model choices (and why):
   step. The mass balance below holds for the last pass.
 * **LES**: Smagorinsky ν_t = (C_s Δ)² |S|, Δ = (mean volume of the cells around the node)^(1/d),
   |S| from the lumped nodal velocity gradient (switch `les`).
-* **Convective sub-steps** (`convection_substeps` = k, default 1): the predictor is made of k explicit
-  sub-steps of Δt/k (each the predictor above: convection, viscosity, Taylor-Galerkin term at Δt/k, the
+* **Convective sub-steps** (`convection_substeps` = k, default 1): the predictor is made of m ≤ k explicit
+  sub-steps of Δt/m (each the predictor above: convection, viscosity, Taylor-Galerkin term at Δt/m, the
   old pressure gradient, the implicit drag), from q^n to q*, before one pressure solve and correction over
-  Δt. Each sub-step keeps CFL ≤ `cfl` and Fourier ≤ `fourier`, so the gas step, the pressure solve and the
-  coupling (the DEM sub-steps between two gas steps) take up to k times the convective step. Sub-cycling
-  the explicit part of a projection step is the idea of operator-integration-factor splitting (Maday,
-  Patera and Rønquist 1990, J. Sci. Comput. 5); here each sub-step is the whole explicit predictor, with the
-  step's pressure gradient and drag held, and the projection ends the step. The drag-weighted projection uses the
-  sub-stepped predictor's response to a pressure gradient held through the sub-steps,
-  w = (1/k) Σ_{m=1..k} (1 + D/k)^-m (1/(1 + D) for k = 1), so a steady drag balance is still reached in one
+  Δt. m is the fewest sub-steps that keep CFL ≤ `cfl` and Fourier ≤ `fourier`:
+  m = min(k, ⌈max(CFL/`cfl`, Fourier/`fourier`)⌉) with the numbers of the whole step at its start
+  (`StepInfo.substeps`). So the gas step, the pressure solve and the coupling (the DEM sub-steps between
+  two gas steps) take up to k times the convective step, and a step that `dt_max` holds below the
+  convective step is one plain predictor (the arithmetic of k = 1). Sub-cycling the explicit part of a
+  projection step is the idea of operator-integration-factor splitting (Maday, Patera and Rønquist 1990,
+  J. Sci. Comput. 5); here each sub-step is the whole explicit predictor, with the step's pressure gradient
+  and drag held, and the projection ends the step. The drag-weighted projection uses the sub-stepped
+  predictor's response to a pressure gradient held through the sub-steps,
+  w = (1/m) Σ_{j=1..m} (1 + D/m)^-j (1/(1 + D) for m = 1), so a steady drag balance is still reached in one
   step; the convection of the later sub-steps does not see the correction (first order, as the rest).
 * **Time step**: CFL = max |u| Δt/Δ ≤ k `cfl`, Fourier = max ν_eff Δt/Δ² ≤ k `fourier`, within [dt_min, dt_max];
   optionally the drag number max K Δt/(ρ ε) ≤ `drag_number` (K of the previous step). In a packed bed of
@@ -93,6 +96,7 @@ Model choices (and why):
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -182,6 +186,9 @@ class StepInfo:
     storage_rate: float  # d/dt ∫ ε dV
     mass_imbalance: float  # ρ (inflow − outflow − storage_rate)
     timings: dict[str, float]
+    substeps: int = (
+        1  # explicit predictor sub-steps (more only with gas.convection_substeps > 1 and a CFL-limited step)
+    )
 
 
 class VANSSolver:
@@ -252,6 +259,7 @@ class VANSSolver:
         self._weights = dolfinx.fem.Function(self.Q)  # 1/(1 + K Δt/(ρ ε)) of the step (drag-weighted projection)
         self._weighted = False  # this step's projection is drag-weighted (a drag K was given)
         self._wall_c = None  # the walls' implicit shear coefficient of the step [kg/(m^3 s)] (None: no such walls)
+        self._substeps = 1  # the step's explicit predictor sub-steps (`_substeps_for`)
         self._outlet_rows = self.bc.pressure_dofs[self.bc.pressure_dofs < self.n_owned]
         self._sqrt_n = np.sqrt(self.comm.allreduce(self.n_owned, op=MPI.SUM))
         self.phi = np.zeros(self.n_local)
@@ -523,7 +531,7 @@ class VANSSolver:
         iterations = 0
         for k in range(self.params.pressure_passes):
             t0 = time.perf_counter()
-            if k > 0 and self.params.convection_substeps > 1:  # the sub-stepped predictor's response to G φ
+            if k > 0 and self._substeps > 1:  # the sub-stepped predictor's response to G φ
                 n = self.n_owned
                 r = self._response(K[:n], dt)
                 q_star[:n] -= (r / self.ops.mass[:n])[:, None] * self._g_phi
@@ -551,6 +559,7 @@ class VANSSolver:
             cfl=cfl,
             fourier=fo,
             poisson_iterations=iterations,
+            substeps=self._substeps,
             inflow=inflow,
             outflow=outflow,
             outflow_direct=outflow_direct,
@@ -564,7 +573,9 @@ class VANSSolver:
         par, ops = self.params, self.ops
         nu = eps_old * self._viscosity()
         q_star = self._scratch_vector.x.array.reshape(-1, self.gdim)
-        if par.convection_substeps > 1:
+        self._substeps = self._substeps_for(dt)
+        k = self._substeps
+        if k > 1:
             K = self._with_backflow(K)
             self._predict_substeps(dt, nu, K, Kv, force, q_star)
         else:
@@ -578,7 +589,6 @@ class VANSSolver:
                 self.q, self._rhs, ops.mass, self.eps, K, Kv, force, self.g, par.density, dt, q_star[: self.n_owned]
             )
         w = self._weights.x.array
-        k = par.convection_substeps
         if self._weighted:  # the predictor's implicit diagonal ρ/Δt + K/ε, relative to ρ/Δt
             n = self.n_owned
             w[:n] = self._response(K[:n], dt) if k > 1 else 1.0 / (1.0 + K[:n] * dt / (par.density * self.eps[:n]))
@@ -593,15 +603,29 @@ class VANSSolver:
         self._scratch_vector.x.scatter_forward()
         return q_star
 
+    def _substeps_for(self, dt: float) -> int:
+        """The step's explicit sub-steps: the fewest, up to `convection_substeps`, within `cfl` and `fourier`.
+
+        Collective: from the rates at the step's start; 1 without sub-steps (no reduction then). A step that
+        `compute_dt` made k convective steps long gives k (the ratio is k up to round-off, taken off before the
+        ceiling).
+        """
+        k = self.params.convection_substeps
+        if k == 1:
+            return 1
+        rate_c, rate_f = self._rates()
+        need = dt * max(rate_c / self.params.cfl, rate_f / self.params.fourier)
+        return int(min(k, max(1, math.ceil(need * (1.0 - 1e-9)))))
+
     def _predict_substeps(self, dt, nu, K, Kv, force, q_star) -> None:
-        """The predictor as `convection_substeps` explicit sub-steps of dt/k into q_star (see "Convective sub-steps").
+        """The predictor as `_substeps` explicit sub-steps of dt/m into q_star (see "Convective sub-steps").
 
         Each sub-step is the one-step predictor over dt/k from the last sub-step's velocity (u = q/ε^{n+1}
         after the first), with the old pressure gradient, this step's K, K v̄ and force, and the velocity
         boundary conditions at its end time.
         """
         par, ops, n = self.params, self.ops, self.n_owned
-        k = par.convection_substeps
+        k = self._substeps
         sub = dt / k
         hdt = 0.5 * sub if par.taylor_galerkin else 0.0
         q, u = self._ext("q", self._q), self._ext("u", self._u)
@@ -624,10 +648,10 @@ class VANSSolver:
     def _response(self, c: np.ndarray, dt: float) -> np.ndarray:
         """How much of a pressure-gradient change the predictor passes on, per node, with the implicit coefficient c.
 
-        One step: 1/(1 + D), D = c Δt/(ρ ε). With k sub-steps each damped by a = 1/(1 + D/k), a gradient held
-        through them moves q by (Δt/ρ) (1/k) Σ_{m=1..k} a^m of it.
+        One step: 1/(1 + D), D = c Δt/(ρ ε). With k sub-steps (the step's `_substeps`) each damped by
+        a = 1/(1 + D/k), a gradient held through them moves q by (Δt/ρ) (1/k) Σ_{m=1..k} a^m of it.
         """
-        k = self.params.convection_substeps
+        k = self._substeps
         a = 1.0 / (1.0 + c * (dt / k) / (self.params.density * self.eps[: c.shape[0]]))
         power = np.ones_like(a)
         total = np.zeros_like(a)
