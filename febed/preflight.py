@@ -22,8 +22,9 @@ before the output folder is touched. It
     `MAX_SUBSTEPS` DEM sub-steps per gas step is refused (a stiffness typo: one gas step would take hours, and
     a stop signal waits for the step to end);
   - wall time: particles x DEM steps x `DEM_SECONDS` plus nodes x gas steps x `GAS_SECONDS`, over the
-    ranks (one-core throughputs measured on the seed beds); refused when even `FAST` times faster it would
-    exceed `MAX_WALL_DAYS`;
+    ranks (one-core throughputs measured on the seed beds); with `gas.convection_substeps` the estimated gas
+    step spans m convective steps, and each extra explicit sub-step adds `PREDICTOR_SHARE` of a gas step;
+    refused when even `FAST` times faster it would exceed `MAX_WALL_DAYS`;
   - memory: `PARTICLE_BYTES` per particle and `NODE_BYTES` per mesh node; refused when a quarter of it
     exceeds the physical memory of the ranks' machine;
   - an inlet velocity whose CFL step on the mean cell is below `dt_min` (the gas step could not follow it),
@@ -56,6 +57,9 @@ MAX_SUBSTEPS = 100_000  # DEM sub-steps per gas step (seed cases: 10-500)
 MAX_WALL_DAYS = 30.0  # refuse when the optimistic wall-time estimate exceeds this
 DEM_SECONDS = 2.5e-7  # wall seconds per particle per DEM step, coupling included (one core, measured 1.6-3.1e-7)
 GAS_SECONDS = 1.5e-6  # wall seconds per mesh node per gas step (one core, measured 1.2-1.9e-6)
+# The explicit predictor's share of a gas step, paid again by each extra convective sub-step (seed 001's C3 on
+# 2 ranks: 0.28 of the gas with one sub-step; 0.50 with 3.2 sub-steps on average, k = 4)
+PREDICTOR_SHARE = 0.3
 FAST = 5.0  # the optimistic estimate assumes throughputs this many times the measured ones
 # The fastest gas speed of a fluidized bed over its U_f, which limits the gas step by the CFL number: in febed's
 # pseudo-2D beds (seed 001, U_f = 1.2 m/s, 2.2 U_mf) the median over 0.1-6 s of max|u| was 3.4, 4.4 and 5.8 U_f on
@@ -82,6 +86,7 @@ class Estimate:
     dt_dem: float | None = None  # s
     dt_gas: float | None = None  # s
     bed_cfl: bool = False  # the gas step is the CFL limit at a fluidized bed's gas speed (BED_GAS_SPEED U_f)
+    convective: int = 1  # explicit predictor sub-steps per gas step (gas.convection_substeps, as the step needs)
     gas_steps: float = 0.0
     dem_steps: float = 0.0
     memory: float = 0.0  # bytes, the whole run
@@ -100,6 +105,8 @@ class Estimate:
         if self.dt_gas:
             where = f" (CFL at a fluidized bed's gas speed, {BED_GAS_SPEED:g} U_f)" if self.bed_cfl else ""
             parts.append(f"~{_num(self.gas_steps)} gas steps of ~{self.dt_gas:.3g} s{where}")
+            if self.convective > 1:
+                parts.append(f"{self.convective} convective sub-steps per gas step")
         if self.dt_dem:
             parts.append(f"DEM step {self.dt_dem:.3g} s")
             if self.dt_gas:
@@ -376,9 +383,12 @@ def estimate(case: Case, md, bed, comm=MPI.COMM_WORLD) -> tuple[Estimate, list[s
         est.dt_dem = _dem_step(case, md.gdim, bed)
     if mode in GAS_MODES:
         est.dt_gas, cfl_dt = _gas_step(case, md, ident)
+        speed = 1.0
         if est.particles and _fluidized(case):
             dt_bed = _gas_step(case, md, ident, BED_GAS_SPEED)[0]
             est.bed_cfl, est.dt_gas = dt_bed < est.dt_gas, dt_bed
+            speed = BED_GAS_SPEED
+        est.convective = _convective_substeps(case, md, ident, est.dt_gas, speed)
         if cfl_dt < case.gas.dt_min:
             tag, u = _fastest_inlet(case)
             hard.append(
@@ -390,7 +400,8 @@ def estimate(case: Case, md, bed, comm=MPI.COMM_WORLD) -> tuple[Estimate, list[s
     if est.dt_dem:
         est.dem_steps = est.gas_steps * est.sub_steps if est.dt_gas else end / est.dt_dem
     est.memory = est.particles * PARTICLE_BYTES + est.nodes * NODE_BYTES
-    est.wall = (est.particles * est.dem_steps * DEM_SECONDS + est.nodes * est.gas_steps * GAS_SECONDS) / comm.size
+    gas_cost = GAS_SECONDS * (1.0 + PREDICTOR_SHARE * (est.convective - 1))
+    est.wall = (est.particles * est.dem_steps * DEM_SECONDS + est.nodes * est.gas_steps * gas_cost) / comm.size
     if est.dt_dem and est.dt_gas and est.sub_steps > MAX_SUBSTEPS:
         refusals.append(
             f"{_dem_keys(case)}: the DEM step T_C / dt_factor is {est.dt_dem:.3g} s, {_num(est.sub_steps)} DEM "
@@ -478,18 +489,28 @@ def _fluidized(case: Case) -> bool:
     return gravity > 0 and u > u_mf_wen_yu(p.diameter, p.density, g.density, g.viscosity, gravity)
 
 
-def _gas_step(case: Case, md, ident: dict, speed: float = 1.0) -> tuple[float, float]:
+def _gas_step(case: Case, md, ident: dict, speed: float = 1.0, substeps: int | None = None) -> tuple[float, float]:
     """(estimated gas step, CFL step at the fastest inlet) in s on the mean cell size.
 
-    The estimate takes the CFL limit at `speed` times the fastest inlet velocity (a fluidized bed's gas speed).
+    The estimate takes the CFL limit at `speed` times the fastest inlet velocity (a fluidized bed's gas speed),
+    with up to `substeps` (default: the case's `gas.convection_substeps`) convective steps per gas step.
     """
     g = case.gas
     h = _cell_size(md, ident)
     _, u = _fastest_inlet(case)
-    k = g.convection_substeps  # each explicit sub-step within the limits
+    k = g.convection_substeps if substeps is None else substeps  # each explicit sub-step within the limits
     cfl_dt = k * g.cfl * h / u if u > 0 else math.inf
     fourier_dt = k * g.fourier * h * h * g.density / g.viscosity
     return max(min(g.dt_max, cfl_dt / speed, fourier_dt), g.dt_min), cfl_dt
+
+
+def _convective_substeps(case: Case, md, ident: dict, dt: float, speed: float) -> int:
+    """Explicit sub-steps of a gas step of `dt` (s): as many convective steps as it spans, up to the case's k."""
+    k = case.gas.convection_substeps
+    if k == 1:
+        return 1
+    single = _gas_step(case, md, ident, speed, substeps=1)[0]
+    return int(min(k, max(1, math.ceil(dt / single * (1.0 - 1e-9)))))
 
 
 def _physical_memory() -> float:

@@ -2,7 +2,8 @@
 
 A box of 2 mm cells with 1 mm glass beads (U_mf = 0.54 m/s by Wen and Yu): at U_f = 1.2 m/s the bed is
 fluidized and the estimate's gas step is the CFL limit at BED_GAS_SPEED U_f; at 0.3 m/s (a fixed bed) and
-without particles it is the CFL limit at U_f or dt_max, whichever is smaller.
+without particles it is the CFL limit at U_f or dt_max, whichever is smaller. With convective sub-steps the
+gas step spans as many CFL steps as dt_max allows, up to k, and each extra sub-step costs a predictor.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import pytest
 
 from febed.case import load_case
 from febed.coarse.pcpm import u_mf_wen_yu
-from febed.preflight import BED_GAS_SPEED, preflight
+from febed.preflight import BED_GAS_SPEED, DEM_SECONDS, GAS_SECONDS, PREDICTOR_SHARE, preflight
 
 CASE = """
 [run]
@@ -27,6 +28,7 @@ cell = "quadrilateral"
 [gas]
 dt_max = 2e-4
 cfl = 0.2
+convection_substeps = {k}
 
 [gas.boundary.inlet]
 type = "inlet"
@@ -47,14 +49,14 @@ stiffness = 800.0
 """
 
 
-def case(tmp_path, velocity, count=300, mode="cfd-dem"):
-    path = tmp_path / f"case-{mode}-{velocity}.toml"
-    path.write_text(CASE.format(mode=mode, velocity=velocity, count=count))
+def case(tmp_path, velocity, count=300, mode="cfd-dem", k=1):
+    path = tmp_path / f"case-{mode}-{velocity}-{k}.toml"
+    path.write_text(CASE.format(mode=mode, velocity=velocity, count=count, k=k))
     return load_case(path)
 
 
-def estimate(tmp_path, velocity, count=300, mode="cfd-dem"):
-    return preflight(case(tmp_path, velocity, count, mode)).estimate
+def estimate(tmp_path, velocity, count=300, mode="cfd-dem", k=1):
+    return preflight(case(tmp_path, velocity, count, mode, k)).estimate
 
 
 def test_a_fluidized_bed_takes_its_gas_step_at_the_bed_gas_speed(tmp_path):
@@ -69,3 +71,20 @@ def test_a_fluidized_bed_takes_its_gas_step_at_the_bed_gas_speed(tmp_path):
     assert not fixed.bed_cfl and fixed.dt_gas == pytest.approx(2e-4, rel=1e-12)
     gas = estimate(tmp_path, 1.2, count=0, mode="gas")
     assert not gas.bed_cfl and gas.dt_gas == pytest.approx(2e-4, rel=1e-12)
+
+
+def test_convective_substeps_lengthen_the_gas_step_up_to_dt_max_and_cost_predictors(tmp_path):
+    # the bed's CFL step is 0.2 h / (5 x 1.2 m/s) = 6.7e-5 s: k = 4 would span 2.7e-4 s, so dt_max = 2e-4 s
+    # holds the step to 3 sub-steps; without particles the CFL step at U_f (3.3e-4 s) is above dt_max: one
+    h = 0.002
+    single = 0.2 * h / (BED_GAS_SPEED * 1.2)
+    one, four = estimate(tmp_path, 1.2), estimate(tmp_path, 1.2, k=4)
+    assert one.convective == 1 and one.dt_gas == pytest.approx(single, rel=1e-12)
+    assert four.convective == 3 and four.dt_gas == pytest.approx(2e-4, rel=1e-12)
+    assert "3 convective sub-steps per gas step" in four.text()
+    for est, subs in ((one, 1), (four, 3)):
+        gas = est.wall - est.particles * est.dem_steps * DEM_SECONDS / est.ranks
+        expected = est.nodes * (0.1 / est.dt_gas) * GAS_SECONDS * (1 + PREDICTOR_SHARE * (subs - 1)) / est.ranks
+        assert gas == pytest.approx(expected, rel=1e-9)
+    gas_only = estimate(tmp_path, 1.2, count=0, mode="gas", k=4)
+    assert gas_only.convective == 1 and gas_only.dt_gas == pytest.approx(2e-4, rel=1e-12)
