@@ -41,7 +41,7 @@ from febed.dem.insertion import (
 from febed.dem.particles import Particles
 from febed.dem.solver import DEM
 from febed.dem.walls import Walls, touching
-from febed.parallel import ParticleExchange
+from febed.parallel import BoxExchange, ParticleExchange
 
 
 def wall_tags(case, md) -> list[str]:
@@ -151,10 +151,12 @@ def gather_particles(dem: DEM) -> Particles | None:
     return Particles.from_dict({k: v[order] for k, v in data.items()})
 
 
-def particle_exchange(md, comm):
-    """The particle exchange over the mesh partition, or None on one process."""
+def particle_exchange(md, comm, partition: str = "mesh"):
+    """The particle exchange of `[run] particle_partition` (mesh partition or work-balanced boxes); None serially."""
     if comm.size == 1:
         return None
+    if partition == "work":
+        return BoxExchange(comm, dim=md.gdim)
     return ParticleExchange.from_mesh(md.mesh)
 
 

@@ -324,6 +324,11 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
     if any(b < a for a, b in zip(lo, hi, strict=True)):  # equal bounds allowed: z of a 2D case
         problems.append(f"[particles] region = {parts.region}: needs xmin <= xmax, ymin <= ymax, zmin <= zmax")
     run = case.run
+    if run.particle_partition == "work" and run.mode != "dem":
+        problems.append(
+            f"[run] particle_partition = 'work' is for pure-DEM runs (mode = 'dem'), not mode = {run.mode!r}: a "
+            "coupled run couples each particle on the rank owning its mesh cell; use particle_partition = 'mesh'"
+        )
     if run.mode in ("gas", "cfd-dem") and not case.boundary:
         problems.append(f"[run] mode = {run.mode!r} needs gas boundary conditions: add [gas.boundary.<tag>] tables")
     types = {b.type for b in case.boundary.values()}

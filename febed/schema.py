@@ -175,6 +175,15 @@ SCHEMA: dict[str, dict[str, Param]] = {
             lo_open=True,
             hi=1.0,
         ),
+        "particle_partition": Param(
+            "mesh",
+            "-",
+            "how the particles are shared among MPI ranks: 'mesh', each on the rank owning its mesh cell; 'work', "
+            "boxes of equal DEM work (particles weighted by their contacts), cut again as the particles move "
+            "(pure-DEM runs, mode = 'dem')",
+            str,
+            choices=("mesh", "work"),
+        ),
         "max_clipped_fraction": Param(
             0.05,
             "",
@@ -662,6 +671,7 @@ CHANGEABLE = (
     "run.end_time",
     "run.max_overlap",
     "run.max_clipped_fraction",
+    "run.particle_partition",
     "output.*",
     "gas.cfl",
     "gas.fourier",

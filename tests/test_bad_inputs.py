@@ -202,6 +202,10 @@ ROWS = [
     ("max_overlap zero", S("run.max_overlap", 0.0), ["[run] max_overlap = 0.0"]),
     ("max_overlap above 1", S("run.max_overlap", 2.0), ["[run] max_overlap = 2.0"]),
     ("max_clipped_fraction above 1", S("run.max_clipped_fraction", 1.5), ["[run] max_clipped_fraction"]),
+    ("particle_partition misspelt", S("run.particle_partition", "cells"),
+     ["[run] particle_partition = 'cells'", "'work'"]),  # fmt: skip
+    ("particle_partition work in a coupled run", S("run.particle_partition", "work"),
+     ["[run] particle_partition = 'work'", "mode = 'dem'", "'cfd-dem'"]),  # fmt: skip
     # [mesh]
     ("builtin misspelt", S("mesh.builtin", "wang3d"), ["[mesh] builtin = 'wang3d'", "'wang2d'"]),
     ("level misspelt", S("mesh.level", "ultra"), ["[mesh] level = 'ultra'"]),

@@ -368,6 +368,12 @@ class PairList:
         """Number of pairs in the list."""
         return int(self.start[self.n])
 
+    def pair_counts(self, n_rows: int) -> np.ndarray:
+        """Listed pairs of each of the first n_rows rows (as first or second partner): the force loop's work."""
+        size = self.size
+        counts = np.bincount(self.nbr[:size], minlength=self.n)[: self.n] + np.diff(self.start[: self.n + 1])
+        return counts[:n_rows].astype(np.float64)
+
     def saved_history(self, gid: np.ndarray, n_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Sorted canonical keys and history of the pairs with non-zero history (before a rebuild).
 

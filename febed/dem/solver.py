@@ -320,10 +320,12 @@ class DEM:
         if ex.any(problem is not None):
             found = [m for m in ex.comm.allgather(problem) if m]
             raise DEMFailure(found[0] + (f" (and on {len(found) - 1} other rank(s))" if len(found) > 1 else ""))
+        listed = self._lists_valid and self.pairs.n == P.n  # the last lists index the current rows
+        work = 1.0 + 0.5 * self.pairs.pair_counts(P.n_owned) if listed else None
         self.save_history()
         saved, wsaved = self._saved if self._saved is not None else (None, None)
         self._saved = None
-        saved, wsaved = ex.migrate(P, saved, wsaved)
+        saved, wsaved = ex.migrate(P, saved, wsaved, work=work)
         dmax = self._dmax()
         skin = p.skin * dmax if dmax > 0 else 1e-12
         n = P.n_owned

@@ -107,11 +107,15 @@ class ParticleExchange:
             raise ValueError(f"cell_owner: must have one rank per local cell ({ma.num_cells},), got {cell_owner.shape}")
         self.ma = ma
         self.mesh = None  # keeps a mesh made by `from_mesh` (and its communicator) alive
-        self.comm = (ma.comm if ma.comm is not None else MPI.COMM_SELF).Dup()  # own context: no tag clashes
-        self.rank = self.comm.rank
-        self.size = self.comm.size
+        self._setup(ma.comm if ma.comm is not None else MPI.COMM_SELF)
         self.cell_owner = cell_owner
         self.table: HaloTable | None = None
+
+    def _setup(self, comm) -> None:
+        """The communication state every decomposition shares (a duplicate of `comm`: no tag clashes)."""
+        self.comm = comm.Dup()
+        self.rank = self.comm.rank
+        self.size = self.comm.size
         self.timers = {"migrate": 0.0, "ghosts": 0.0, "update": 0.0, "reduce": 0.0}
         self.migrated = 0
         self.strays = 0
@@ -222,11 +226,12 @@ class ParticleExchange:
         P.gid_limit = P.next_gid + stride
 
     # ------------------------------------------------------------------------------------ migration
-    def migrate(self, particles, saved=None, wsaved=None):
+    def migrate(self, particles, saved=None, wsaved=None, work=None):
         """Send owned particles to their owners with their history (collective); returns merged (saved, wsaved).
 
         saved: (keys, vals) of pair history (`PairList.saved_history`), wsaved: (keys, vals) of wall history, or
-        None. Ghost rows are dropped. Arrivals get cell -1 (located afresh by their next walk).
+        None. work: each owned particle's share of the force loop (unused here: ownership follows the mesh).
+        Ghost rows are dropped. Arrivals get cell -1 (located afresh by their next walk).
         """
         t0 = time.perf_counter()
         P = particles
@@ -278,11 +283,8 @@ class ParticleExchange:
         P.n_ghost = 0
         if self.size == 1:
             return
-        if self.table is None or self.table.width < reach:
-            self.table = HaloTable(self.comm, self.ma.bbox, self.ma.num_owned_cells, 1.2 * reach)
         n = P.n_owned
-        start, rows, stray = self.table.targets(P.pos[:n], n)
-        self.strays = stray
+        start, rows = self._ghost_targets(P.pos, n, reach)
         self._send_start, self._send_rows = start, rows
         counts = np.diff(start).astype(np.int64)
         recv = np.zeros(self.size, dtype=np.int64)
@@ -322,6 +324,13 @@ class ParticleExchange:
         P.set_ghosts(**fields)
         self._bufs = {}  # update messages by width: 9 (pos, vel, omega) or 6 (no rotation)
         self.timers["ghosts"] += time.perf_counter() - t0
+
+    def _ghost_targets(self, pos: np.ndarray, n: int, reach: float):
+        """(start (size+1,), rows): rows[start[r]:start[r+1]] of pos[:n] are the ghosts rank r needs; sets `strays`."""
+        if self.table is None or self.table.width < reach:
+            self.table = HaloTable(self.comm, self.ma.bbox, self.ma.num_owned_cells, 1.2 * reach)
+        start, rows, self.strays = self.table.targets(pos[:n], n)
+        return start, rows
 
     def update_ghosts(self, particles, vel: np.ndarray, omega: np.ndarray, local_max: float | None = None,
                       spin: bool = True):  # fmt: skip

@@ -3,7 +3,8 @@
 The walls and the bed are the case's (`febed.bed.build_dem`). Particles that leave the mesh's bounding box
 (through an open outlet) are removed and counted in the log.
 
-With MPI (`mpirun -n N febed run`), the particles are distributed over the ranks by the mesh partition and
+With MPI (`mpirun -n N febed run`), the particles are distributed over the ranks by the mesh partition, or
+with `[run] particle_partition = "work"` by boxes of equal DEM work (`febed.parallel.BoxExchange`), and
 migrate inside `DEM.advance`. Output gathers every particle once; the log gives the particle load imbalance
 (max/mean particles per rank) at each output.
 
@@ -52,7 +53,7 @@ class DEMRun(RunMode):
         """Build the mesh, walls and bed; `restart`: (path, arrays, meta) of a checkpoint to continue."""
         self.case, self.outdir, self.log, self.comm = case, Path(outdir), log, comm
         md = load_case_mesh(case, comm)
-        exchange = particle_exchange(md, comm)
+        exchange = particle_exchange(md, comm, case.run.particle_partition)
         self.restarted_from = None
         files = []
         self.left = 0  # particles that left the domain, on this rank

@@ -23,6 +23,21 @@ def test_pairs_equal_brute_force_polydisperse(seed, dim):
     assert pl.pairs() == brute_force_pairs(pos, radius, skin)
 
 
+def test_pair_counts_are_each_rows_listed_pairs():
+    rng = np.random.default_rng(3)
+    n = 400
+    pos = rng.uniform(0, 0.01, (n, 3))
+    radius = rng.uniform(0.3e-3, 0.8e-3, n)
+    pl = PairList(0.1e-3)
+    pl.build(pos, radius, np.arange(n))
+    want = np.zeros(n)
+    for i, j in brute_force_pairs(pos, radius, 0.1e-3):
+        want[i] += 1
+        want[j] += 1
+    assert want.sum() > n  # a dense cloud
+    assert np.array_equal(pl.pair_counts(n), want) and np.array_equal(pl.pair_counts(100), want[:100])
+
+
 def test_far_outlier_does_not_blow_up_grid():
     pos = np.array([[0, 0, 0], [1e-3, 0, 0], [1e3, 1e3, 1e3]])
     pl = PairList(1e-4)

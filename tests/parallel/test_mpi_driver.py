@@ -1,4 +1,7 @@
-"""Pure-DEM mode on several ranks: the same particles as serially, each written once (run under mpirun -n 2)."""
+"""Pure-DEM mode on several ranks: the same particles as serially, each written once (run under mpirun -n 2).
+
+With the mesh partition and with `particle_partition = "work"` (boxes of equal DEM work).
+"""
 
 import logging
 import xml.etree.ElementTree as ET
@@ -17,6 +20,7 @@ CASE = """
 [run]
 mode = "dem"
 end_time = 0.012
+particle_partition = "{partition}"
 
 [mesh]
 file = "cylinder.msh"  # built once (gmsh's tetrahedra may differ between two builds in processes with a history)
@@ -46,7 +50,8 @@ directory = "{out}"
 """
 
 
-def test_pure_dem_run_on_all_ranks_matches_serial(mpi_tmp_path):
+@pytest.mark.parametrize("partition", ["mesh", "work"])
+def test_pure_dem_run_on_all_ranks_matches_serial(mpi_tmp_path, partition):
     from febed.bed import build_dem
     from febed.meshing import load_case_mesh
     from febed.runs.dem import run
@@ -57,7 +62,7 @@ def test_pure_dem_run_on_all_ranks_matches_serial(mpi_tmp_path):
         from febed.meshing import build_msh
 
         build_msh("cylinder", mpi_tmp_path / "cylinder.msh", size=0.008)
-        (mpi_tmp_path / "case.toml").write_text(CASE.format(out=out))
+        (mpi_tmp_path / "case.toml").write_text(CASE.format(out=out, partition=partition))
     comm.barrier()
     case = load_case(mpi_tmp_path / "case.toml")
     dem = run(case, out, logging.getLogger("test"), comm)
@@ -68,6 +73,8 @@ def test_pure_dem_run_on_all_ranks_matches_serial(mpi_tmp_path):
     gid = last["gid"]
     assert gid.size == 300 and np.unique(gid).size == 300  # every particle once
     assert comm.allreduce(dem.particles.n_owned) == 300
+    if partition == "work" and comm.size > 1:  # the boxes share the cloud out evenly
+        assert comm.allreduce(dem.particles.n_owned, op=MPI.MAX) <= 1.1 * 300 / comm.size
     # the serial DEM of the same case on this rank alone
     md = load_case_mesh(case, MPI.COMM_SELF, cache_dir=mpi_tmp_path / f"mesh{comm.rank}")
     ref = build_dem(case, md, logging.getLogger("test"))
