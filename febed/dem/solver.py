@@ -321,7 +321,7 @@ class DEM:
             found = [m for m in ex.comm.allgather(problem) if m]
             raise DEMFailure(found[0] + (f" (and on {len(found) - 1} other rank(s))" if len(found) > 1 else ""))
         listed = self._lists_valid and self.pairs.n == P.n  # the last lists index the current rows
-        work = 1.0 + 0.5 * self.pairs.pair_counts(P.n_owned) if listed else None
+        work = 1.0 + 0.5 * self.pairs.pair_counts(P.n_owned) if listed and ex.balances_work else None
         self.save_history()
         saved, wsaved = self._saved if self._saved is not None else (None, None)
         self._saved = None

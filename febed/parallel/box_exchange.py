@@ -40,6 +40,8 @@ class BoxExchange(ParticleExchange):
         Others as `ParticleExchange` (timers gain "partition", the seconds spent cutting).
     """
 
+    balances_work = True
+
     def __init__(self, comm, dim: int = 3):
         """An exchange over `comm` for particles in `dim` dimensions (the cut axes: x, y[, z])."""
         if dim not in (2, 3):

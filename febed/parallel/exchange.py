@@ -93,12 +93,16 @@ def _merge(keys: np.ndarray, vals: np.ndarray, more: list[tuple[np.ndarray, np.n
 class ParticleExchange:
     """Particle decomposition over the mesh partition of `ma` (see the module docstring).
 
+    `balances_work` (False): whether `migrate` uses the particles' work (the DEM computes it only then).
+
     Attributes:
         comm: the mesh communicator; rank, size: its rank and size.
         timers: wall seconds in "migrate", "ghosts" (refresh), "update" (per-stage ghost updates),
             "reduce" (collective reductions of the stepping).
         migrated: particles sent away so far; strays: owned particles last found outside the halo region.
     """
+
+    balances_work = False
 
     def __init__(self, ma, cell_owner: np.ndarray):
         """Set up for mesh arrays `ma` (`extract_mesh_arrays`) and the owner rank of each local cell."""
