@@ -15,12 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from dem_scaling import mpirun_result  # noqa: E402
 
 
 def worker(case_path: str, restart: str, partition: str, steps: int) -> None:
@@ -71,15 +72,8 @@ def worker(case_path: str, restart: str, partition: str, steps: int) -> None:
 
 def run(ranks: int, args, partition: str) -> dict:
     """The worker under mpirun -n ranks."""
-    env = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", OMPI_MCA_mpi_yield_when_idle="1")
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(ranks), sys.executable, __file__,
-           "--worker", "--case", args.case, "--restart", args.restart, "--partition", partition,
-           "--steps", str(args.steps)]  # fmt: skip
-    res = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
-    for line in res.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
-    raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")
+    return mpirun_result(ranks, __file__, ["--worker", "--case", args.case, "--restart", args.restart,
+                                           "--partition", partition, "--steps", str(args.steps)])  # fmt: skip
 
 
 def main() -> None:

@@ -93,10 +93,14 @@ def machine() -> str:
 
 def run(ranks: int, steps: int, n: int) -> dict:
     """Run the worker under mpirun -n ranks and return its timings."""
+    return mpirun_result(ranks, __file__, ["--worker", "--steps", str(steps), "--n", str(n)])
+
+
+def mpirun_result(ranks: int, script: str, args: list[str]) -> dict:
+    """The JSON a benchmark's worker prints on a `RESULT ` line, run as `mpirun -n ranks python script args`."""
     # waiting ranks yield the CPU instead of spinning: on a shared machine a spinning rank starves the other one
     env = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", OMPI_MCA_mpi_yield_when_idle="1")
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(ranks), sys.executable, __file__,
-           "--worker", "--steps", str(steps), "--n", str(n)]  # fmt: skip
+    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(ranks), sys.executable, script, *args]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
     for line in res.stdout.splitlines():
         if line.startswith("RESULT "):

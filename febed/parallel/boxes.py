@@ -165,6 +165,16 @@ def bisect(comm, pos: np.ndarray, weights: np.ndarray | None = None, dim: int = 
 
 
 @njit(cache=True)
+def _near(pos, p, lo, hi, r, r2):
+    """Whether point p of pos lies within sqrt(r2) of box r [lo[r], hi[r]]."""
+    d2 = 0.0
+    for a in range(3):
+        d = max(lo[r, a] - pos[p, a], 0.0, pos[p, a] - hi[r, a])
+        d2 += d * d
+    return d2 <= r2
+
+
+@njit(cache=True)
 def box_ghost_targets(pos, n, lo, hi, me, reach):
     """Send lists (start (nr+1,), rows): rows[start[r]:start[r+1]] are the points pos[:n] within `reach` of box r.
 
@@ -173,34 +183,21 @@ def box_ghost_targets(pos, n, lo, hi, me, reach):
     nr = lo.shape[0]
     r2 = reach * reach
     counts = np.zeros(nr, dtype=np.int64)
-    near = np.zeros(n, dtype=np.int64)  # how many other boxes each point is near
+    near = np.zeros(n, dtype=np.bool_)  # whether a point is near any other box
     for p in range(n):
         for r in range(nr):
-            if r == me:
-                continue
-            d2 = 0.0
-            for a in range(3):
-                d = max(lo[r, a] - pos[p, a], 0.0, pos[p, a] - hi[r, a])
-                d2 += d * d
-            if d2 <= r2:
+            if r != me and _near(pos, p, lo, hi, r, r2):
                 counts[r] += 1
-                near[p] += 1
+                near[p] = True
     start = np.zeros(nr + 1, dtype=np.int64)
     for r in range(nr):
         start[r + 1] = start[r] + counts[r]
     rows = np.empty(start[nr], dtype=np.int64)
     fill = start[:nr].copy()
     for p in range(n):
-        if near[p] == 0:
-            continue
-        for r in range(nr):
-            if r == me:
-                continue
-            d2 = 0.0
-            for a in range(3):
-                d = max(lo[r, a] - pos[p, a], 0.0, pos[p, a] - hi[r, a])
-                d2 += d * d
-            if d2 <= r2:
-                rows[fill[r]] = p
-                fill[r] += 1
+        if near[p]:
+            for r in range(nr):
+                if r != me and _near(pos, p, lo, hi, r, r2):
+                    rows[fill[r]] = p
+                    fill[r] += 1
     return start, rows
