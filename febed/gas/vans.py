@@ -186,9 +186,8 @@ class StepInfo:
     storage_rate: float  # d/dt ∫ ε dV
     mass_imbalance: float  # ρ (inflow − outflow − storage_rate)
     timings: dict[str, float]
-    substeps: int = (
-        1  # explicit predictor sub-steps (more only with gas.convection_substeps > 1 and a CFL-limited step)
-    )
+    # explicit predictor sub-steps (more than 1 only with gas.convection_substeps > 1 and a CFL-limited step)
+    substeps: int = 1
 
 
 class VANSSolver:
@@ -620,7 +619,7 @@ class VANSSolver:
     def _predict_substeps(self, dt, nu, K, Kv, force, q_star) -> None:
         """The predictor as `_substeps` explicit sub-steps of dt/m into q_star (see "Convective sub-steps").
 
-        Each sub-step is the one-step predictor over dt/k from the last sub-step's velocity (u = q/ε^{n+1}
+        Each sub-step is the one-step predictor over dt/m from the last sub-step's velocity (u = q/ε^{n+1}
         after the first), with the old pressure gradient, this step's K, K v̄ and force, and the velocity
         boundary conditions at its end time.
         """
