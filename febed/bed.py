@@ -152,7 +152,7 @@ def gather_particles(dem: DEM) -> Particles | None:
 
 
 def particle_exchange(md, comm, partition: str = "mesh"):
-    """The particle exchange of `[run] particle_partition` (mesh partition or work-balanced boxes); None serially."""
+    """The particle exchange: over the mesh partition, or work-balanced boxes for "work"; None on one process."""
     if comm.size == 1:
         return None
     if partition == "work":

@@ -176,13 +176,13 @@ SCHEMA: dict[str, dict[str, Param]] = {
             hi=1.0,
         ),
         "particle_partition": Param(
-            "mesh",
+            "auto",
             "-",
             "how the particles are shared among MPI ranks: 'mesh', each on the rank owning its mesh cell; 'work', "
-            "boxes of equal DEM work (particles weighted by their contacts), cut again as the particles move "
-            "(pure-DEM runs, mode = 'dem')",
+            "boxes of equal DEM work (particles weighted by their listed pairs), cut again as the particles move "
+            "(pure-DEM runs, mode = 'dem'); 'auto', 'work' in a pure-DEM run and 'mesh' otherwise",
             str,
-            choices=("mesh", "work"),
+            choices=("auto", "mesh", "work"),
         ),
         "max_clipped_fraction": Param(
             0.05,

@@ -1,4 +1,4 @@
-"""Particles owned by work-balanced boxes instead of the mesh partition (`[run] particle_partition = "work"`).
+"""Particles owned by work-balanced boxes instead of the mesh partition (pure-DEM runs, `[run] particle_partition`).
 
 `BoxExchange` is a `ParticleExchange` whose owner rule is the rank's box of a weighted recursive coordinate
 bisection of the particles (`febed.parallel.boxes`). At every migration (every pair-list rebuild) the

@@ -3,10 +3,10 @@
 The walls and the bed are the case's (`febed.bed.build_dem`). Particles that leave the mesh's bounding box
 (through an open outlet) are removed and counted in the log.
 
-With MPI (`mpirun -n N febed run`), the particles are distributed over the ranks by the mesh partition, or
-with `[run] particle_partition = "work"` by boxes of equal DEM work (`febed.parallel.BoxExchange`), and
-migrate inside `DEM.advance`. Output gathers every particle once; the log gives the particle load imbalance
-(max/mean particles per rank) at each output.
+With MPI (`mpirun -n N febed run`), the particles are distributed over the ranks by boxes of equal DEM work
+(`febed.parallel.BoxExchange`; `[run] particle_partition = "auto"` or `"work"`), or by the mesh partition
+(`"mesh"`), and migrate inside `DEM.advance`. Output gathers every particle once; the log gives the particle
+load imbalance (max/mean particles per rank) at each output.
 
 Like a coupled run, a pure-DEM run (`DEMRun`) writes checkpoints (every `[output] checkpoint_interval`
 simulated or `checkpoint_wall_interval` wall seconds, on SIGINT/SIGTERM/SIGUSR1, at the end, and the last good
@@ -53,7 +53,8 @@ class DEMRun(RunMode):
         """Build the mesh, walls and bed; `restart`: (path, arrays, meta) of a checkpoint to continue."""
         self.case, self.outdir, self.log, self.comm = case, Path(outdir), log, comm
         md = load_case_mesh(case, comm)
-        exchange = particle_exchange(md, comm, case.run.particle_partition)
+        partition = case.run.particle_partition
+        exchange = particle_exchange(md, comm, "work" if partition == "auto" else partition)
         self.restarted_from = None
         files = []
         self.left = 0  # particles that left the domain, on this rank

@@ -1,6 +1,7 @@
 """Pure-DEM mode on several ranks: the same particles as serially, each written once (run under mpirun -n 2).
 
-With the mesh partition and with `particle_partition = "work"` (boxes of equal DEM work).
+With the mesh partition and with the default `particle_partition = "auto"` (boxes of equal DEM work in a
+pure-DEM run).
 """
 
 import logging
@@ -50,7 +51,7 @@ directory = "{out}"
 """
 
 
-@pytest.mark.parametrize("partition", ["mesh", "work"])
+@pytest.mark.parametrize("partition", ["mesh", "auto"])
 def test_pure_dem_run_on_all_ranks_matches_serial(mpi_tmp_path, partition):
     from febed.bed import build_dem
     from febed.meshing import load_case_mesh
@@ -73,7 +74,7 @@ def test_pure_dem_run_on_all_ranks_matches_serial(mpi_tmp_path, partition):
     gid = last["gid"]
     assert gid.size == 300 and np.unique(gid).size == 300  # every particle once
     assert comm.allreduce(dem.particles.n_owned) == 300
-    if partition == "work" and comm.size > 1:  # the boxes share the cloud out evenly
+    if partition == "auto" and comm.size > 1:  # the boxes share the cloud out evenly
         assert comm.allreduce(dem.particles.n_owned, op=MPI.MAX) <= 1.1 * 300 / comm.size
     # the serial DEM of the same case on this rank alone
     md = load_case_mesh(case, MPI.COMM_SELF, cache_dir=mpi_tmp_path / f"mesh{comm.rank}")
