@@ -5,9 +5,9 @@ them collectively: the box of a group of n ranks is cut by a plane across the lo
 it holds into two boxes for n // 2 and n - n // 2 ranks, at the coordinate where the particles' weight
 divides in that ratio; the two halves are cut in turn until each box has one rank (Berger and Bokhari 1987,
 IEEE Trans. Comput. 36; the particle partition of LIGGGHTS/LAMMPS `balance rcb` works the same way). The
-weighted quantile is found by two rounds of a `HIST_BINS`-bin histogram reduced over the ranks, so the cut
-lies within 1/HIST_BINS² of the particles' extent of the exact one, and costs four reductions per level
-whatever the number of particles.
+weighted quantile is found by rounds of a `HIST_BINS`-bin histogram reduced over the ranks, each refining the
+bin that holds it, until that bin holds at most `BIN_SHARE` of the weight (two rounds for a bed; more when a
+far outlier stretches the bins): a few reductions per level whatever the number of particles.
 
 `box_ghost_targets` lists, for each other rank, the particles within a halo width of its box: the ghost
 copies that rank needs for the contacts across the box faces.
@@ -23,6 +23,8 @@ import numpy as np
 from numba import njit
 
 HIST_BINS = 256
+BIN_SHARE = 1e-3  # the cut's bin holds at most this share of its group's weight (else another round) ...
+MAX_ROUNDS = 4  # ... within this many rounds
 
 
 @dataclass
@@ -56,16 +58,18 @@ class BoxTree:
 
 
 def _cut_fraction(comm, slot, x, w, lo, hi, frac):
-    """Per group g, the coordinate below which frac[g] of the group's weight lies (two histogram rounds).
+    """Per group g, the coordinate below which frac[g] of the group's weight lies (histogram rounds).
 
     slot: group of each particle (-1: none), x: its coordinate along its group's axis, lo/hi: the groups'
-    extents along that axis. Collective (two reductions).
+    extents along that axis. Each round refines the bin holding the quantile, until that bin holds at most
+    `BIN_SHARE` of its group's weight (a far outlier stretches the first round's bins) or `MAX_ROUNDS` are
+    made. Collective (one reduction per round, the same decisions on every rank).
     """
     groups = lo.size
     a, b = lo.copy(), hi.copy()
     below = np.zeros(groups)
-    target = None
-    for _ in range(2):
+    target = total = None
+    for _ in range(MAX_ROUNDS):
         width = np.where(b > a, b - a, 1.0)
         h = np.zeros((groups, HIST_BINS))
         sel = slot >= 0
@@ -78,12 +82,15 @@ def _cut_fraction(comm, slot, x, w, lo, hi, frac):
             np.add.at(h[:, HIST_BINS - 1], s[hi_edge], w[sel][hi_edge])
         comm.Allreduce(MPI.IN_PLACE, h, op=MPI.SUM)
         if target is None:
-            target = frac * h.sum(axis=1)
+            total = h.sum(axis=1)
+            target = frac * total
         cum = below[:, None] + np.cumsum(h, axis=1)
         k = np.array([min(int(np.searchsorted(cum[g], target[g] * (1 - 1e-12))), HIST_BINS - 1) for g in range(groups)])
         step = width / HIST_BINS
         below = np.where(k > 0, cum[np.arange(groups), np.maximum(k - 1, 0)], below)
         a, b = a + k * step, a + (k + 1) * step
+        if np.all(h[np.arange(groups), k] <= BIN_SHARE * total):
+            break
     return b
 
 

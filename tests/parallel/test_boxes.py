@@ -10,7 +10,7 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from febed.parallel.boxes import bisect, box_ghost_targets
+from febed.parallel.boxes import BIN_SHARE, bisect, box_ghost_targets
 
 pytestmark = pytest.mark.mpi
 COMM = MPI.COMM_WORLD
@@ -52,6 +52,19 @@ def test_boxes_tile_space_and_balance_the_weight(dim):
     assert np.abs(per_rank - mean).max() <= 30.0  # a few particles of weight <= 10 (the cut's resolution)
     if dim == 2:
         assert np.all(np.isinf(tree.boxes[:, :, 2]))  # no cut across z
+
+
+def test_a_far_outlier_does_not_spoil_the_balance():
+    # one particle 1 km away stretches the first histogram's bins to 4 m: more rounds refine the cut
+    pos, w = cloud(4000, 5)
+    if COMM.rank == 0:
+        pos[0] = [1000.0, 0.0, 1000.0]
+    tree = bisect(COMM, pos, w)
+    per_rank = np.zeros(COMM.size)
+    np.add.at(per_rank, tree.owner(pos), w)
+    COMM.Allreduce(MPI.IN_PLACE, per_rank, op=MPI.SUM)
+    # each cut's bin holds at most BIN_SHARE of its group's weight (two rounds alone: bins of 15 mm, 6 % of it)
+    assert np.abs(per_rank - per_rank.sum() / COMM.size).max() <= BIN_SHARE * per_rank.sum()
 
 
 def test_one_rank_box_is_everything_and_empty_ranks_still_tile():
