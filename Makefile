@@ -51,7 +51,8 @@ test-mpi: setup
 # The distributed particle tests on 3, 4 and 8 ranks (oversubscribed), and the 4 -> 2 -> 1 restart through `febed run`.
 test-ranks: setup
 	for n in 3 4; do $(MPIEXEC) -n $$n $(PY) -m pytest -m mpi -q --color=no tests/parallel || exit 1; done
-	$(MPIEXEC) -n 8 $(PY) -m pytest -m mpi -q --color=no tests/parallel/test_mpi_dem.py tests/parallel/test_many_ranks.py
+	$(MPIEXEC) -n 8 $(PY) -m pytest -m mpi -q --color=no tests/parallel/test_mpi_dem.py tests/parallel/test_many_ranks.py \
+		tests/parallel/test_mpi_owner_coupling.py
 	$(PYTEST) -m slow tests/parallel/test_many_ranks.py
 
 test-all: setup test-ranks

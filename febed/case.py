@@ -324,10 +324,10 @@ def _cross_checks(case: Case, check_files: bool) -> list[str]:
     if any(b < a for a, b in zip(lo, hi, strict=True)):  # equal bounds allowed: z of a 2D case
         problems.append(f"[particles] region = {parts.region}: needs xmin <= xmax, ymin <= ymax, zmin <= zmax")
     run = case.run
-    if run.particle_partition == "work" and run.mode != "dem":
+    if run.particle_partition == "work" and run.mode not in ("dem", "cfd-dem"):
         problems.append(
-            f"[run] particle_partition = 'work' is for pure-DEM runs (mode = 'dem'), not mode = {run.mode!r}: a "
-            "coupled run couples each particle on the rank owning its mesh cell; use particle_partition = 'mesh'"
+            f"[run] particle_partition = 'work' is for runs whose particles move by their own contacts (mode = "
+            f"'dem' or 'cfd-dem'), not mode = {run.mode!r}: use particle_partition = 'mesh'"
         )
     if run.mode in ("gas", "cfd-dem") and not case.boundary:
         problems.append(f"[run] mode = {run.mode!r} needs gas boundary conditions: add [gas.boundary.<tag>] tables")

@@ -43,6 +43,9 @@ CYLINDER = {"diameter": 0.05, "height": 0.15}
 GEOMETRIES = ("pseudo2d", "wang2d", "cylinder", "box")
 
 
+CUTS = ("columns", "blocks")  # how `load_msh` shares the cells among the ranks
+
+
 class MeshError(ValueError):
     """A mesh that cannot be used, with a message naming the file and what is wrong."""
 
@@ -378,7 +381,7 @@ def build_msh(
 # --------------------------------------------------------------------------------------------- loading
 
 
-def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = None) -> MeshData:
+def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = None, cut: str = "columns") -> MeshData:
     """Read a gmsh `.msh` on rank 0 and distribute it: DOLFINx mesh, cell and facet tags, tag names.
 
     Args:
@@ -386,7 +389,11 @@ def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = No
             named physical groups.
         comm: communicator to distribute the mesh over.
         gdim: geometric dimension; by default 2 if every node has z = 0, else 3.
+        cut: how the cells are shared among the ranks (`CUTS`): "columns", bisected across the horizontal
+            axes only, or "blocks", across every axis (`_create_mesh_rcb`).
     """
+    if cut not in CUTS:
+        raise ValueError(f"cut: one of {', '.join(map(repr, CUTS))}, got {cut!r}")
     path = Path(path)
     err, names, dim = None, {}, 3
     gmsh = None
@@ -414,14 +421,14 @@ def load_msh(path: str | os.PathLike, comm=MPI.COMM_WORLD, gdim: int | None = No
             gmsh.clear()
         raise MeshError(err)
     try:
-        mesh, ct, ft = _model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, gdim or dim)
+        mesh, ct, ft = _model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, gdim or dim, cut)
     finally:
         if gmsh is not None:
             gmsh.clear()
     return MeshData(mesh=mesh, facet_tags=ft, cell_tags=ct, tags=names, source=str(path))
 
 
-def _model_to_mesh(model, comm, gdim: int):
+def _model_to_mesh(model, comm, gdim: int, cut: str = "columns"):
     """The DOLFINx mesh, cell tags and facet tags of the gmsh `model` held by rank 0 (None elsewhere) (collective).
 
     What `dolfinx.io.gmshio.model_to_mesh` does, with the cells distributed by `_create_mesh_rcb` (DOLFINx 0.5's
@@ -472,7 +479,7 @@ def _model_to_mesh(model, comm, gdim: int):
     domain = gmshio.ufl_mesh(cell_id, gdim)
     cell_type = dolfinx.mesh.to_type(str(domain.ufl_cell()))
     cells = cells[:, gmshio.cell_perm_array(cell_type, num_nodes)]
-    mesh = _create_mesh_rcb(comm, cells, x[:, :gdim], domain)
+    mesh = _create_mesh_rcb(comm, cells, x[:, :gdim], domain, cut=cut)
     topology = mesh.topology
     tdim = topology.dim
 
@@ -525,11 +532,13 @@ def rcb_owners(points: np.ndarray, nparts: int, axes: tuple[int, ...] | None = N
     return owner
 
 
-def _create_mesh_rcb(comm, cells, x, domain, *args, **kwargs):
+def _create_mesh_rcb(comm, cells, x, domain, *args, cut: str = "columns", **kwargs):
     """`dolfinx.mesh.create_mesh` with cells distributed by recursive coordinate bisection of their centroids.
 
-    Only the horizontal directions are cut (febed's gravity is along the last axis), so a bed resting at the
-    bottom of a tall mesh is shared between the ranks instead of falling to the lowest one.
+    With cut = "columns" only the horizontal directions are cut (febed's gravity is along the last axis), so a
+    bed resting at the bottom of a tall mesh is shared between the ranks instead of falling to the lowest one
+    (particles owned by the ranks of their cells). With "blocks" every axis is cut: compact parts with the
+    smallest halos, for runs whose particles are shared by their own work (`[run] particle_partition`).
 
     DOLFINx 0.5's default parallel partitioner (PT-SCOTCH) gives a different partition from run to run
     (message timing), so two runs on the same ranks, or a run and its restart, would differ at round-off
@@ -539,10 +548,11 @@ def _create_mesh_rcb(comm, cells, x, domain, *args, **kwargs):
     import dolfinx.graph
     import dolfinx.mesh
 
-    if comm.rank == 0:  # cut across the directions normal to gravity (the last axis): a bed sits at the bottom
+    if comm.rank == 0:  # columns: cut across the directions normal to gravity (the last axis)
         centroids = np.asarray(x)[np.asarray(cells)].mean(axis=1)
         gdim = np.asarray(x).shape[1]
-        owner = rcb_owners(centroids, comm.size, axes=tuple(range(gdim - 1)) if gdim > 1 else None)
+        columns = cut == "columns" and gdim > 1
+        owner = rcb_owners(centroids, comm.size, axes=tuple(range(gdim - 1)) if columns else None)
     else:
         owner = None
     owner = comm.bcast(owner, root=0)
@@ -582,6 +592,11 @@ def builtin_msh_path(name: str, level: str, cell: str, size: float, cache_dir: P
     return cache_dir / f"{tag}.msh"
 
 
+def case_cut(case) -> str:
+    """How a case's cells are shared among ranks: "blocks" for a coupled run whose particles are shared by work."""
+    return "blocks" if case.run.mode == "cfd-dem" and case.run.particle_partition == "work" else "columns"
+
+
 def load_case_mesh(case, comm=MPI.COMM_WORLD, cache_dir: Path | None = None) -> MeshData:
     """The mesh a validated case names (`[mesh] file` or `builtin`), checked against its boundary tags.
 
@@ -597,8 +612,9 @@ def load_case_mesh(case, comm=MPI.COMM_WORLD, cache_dir: Path | None = None) -> 
         MeshError: a missing or unreadable mesh file, or a boundary naming a tag the mesh lacks.
     """
     m = case.mesh
+    cut = case_cut(case)
     if m.file:
-        md = load_msh(case.resolve_path(m.file), comm)
+        md = load_msh(case.resolve_path(m.file), comm, cut=cut)
     else:
         cell = m.cell
         flat = m.builtin == "wang2d" or (m.builtin == "box" and len(m.extent) == 2)
@@ -615,7 +631,7 @@ def load_case_mesh(case, comm=MPI.COMM_WORLD, cache_dir: Path | None = None) -> 
         err = comm.bcast(err, root=0)
         if err:
             raise MeshError(f"[mesh] builtin = {m.builtin!r}: {err}")
-        md = load_msh(path, comm)
+        md = load_msh(path, comm, cut=cut)
     md.require_tags(list(case.boundary), "[gas.boundary.*]")
     for tag, b in case.boundary.items():  # the keys that name other tags
         for key in ("cross_section_tags", "wins_over"):

@@ -178,9 +178,10 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "particle_partition": Param(
             "auto",
             "-",
-            "how the particles are shared among MPI ranks: 'mesh', each on the rank owning its mesh cell; 'work', "
-            "boxes of equal DEM work (particles weighted by their listed pairs), cut again as the particles move "
-            "(pure-DEM runs, mode = 'dem'); 'auto', 'work' in a pure-DEM run and 'mesh' otherwise",
+            "how the particles are shared among MPI ranks: 'mesh', each on the rank owning its mesh cell (the mesh "
+            "cut in columns); 'work', boxes of equal DEM work (particles weighted by their listed pairs), cut again "
+            "as the particles move, each particle coupled on its own rank over the whole mesh (the mesh cut in "
+            "blocks); 'auto', 'work' in a pure-DEM run and 'mesh' otherwise",
             str,
             choices=("auto", "mesh", "work"),
         ),

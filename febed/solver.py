@@ -51,9 +51,12 @@ from febed.coupling.drag import (
 from febed.coupling.exchange import Coupler
 from febed.coupling.locate import OUTSIDE_DOMAIN, OUTSIDE_LOCAL
 from febed.coupling.mesh_arrays import extract_mesh_arrays
+from febed.coupling.owners import OwnerCoupler
 from febed.gas.pressure import PressureSolveError
 from febed.gas.vans import StepInfo, VANSSolver
 from febed.io.state import dem_arrays, gas_arrays, load_dem, restore_gas
+from febed.meshing import load_msh
+from febed.parallel.box_exchange import BoxExchange
 from febed.parallel.exchange import ParticleExchange
 from febed.parallel.partition import cell_owners
 
@@ -140,16 +143,21 @@ class CoupledSolver:
         self.depth = coarse.particle_depth(case) if md.gdim == 2 else 1.0
         self.ma = extract_mesh_arrays(md.mesh, gas.Q, depth=self.depth)
         cp = case.coupling
-        self.coupler = Coupler(
-            self.ma, cp.drag, case.gas.density, case.gas.viscosity, cp.filter_passes, cp.void_fraction_floor,
-            cp.pressure_gradient,
-        )  # fmt: skip
-        if md.comm.size > 1:  # particles live with the mesh partition (seed 001 sec 2.5)
-            dem.attach_exchange(ParticleExchange(self.ma, cell_owners(md.mesh)), distribute=True)
+        law = dict(drag=cp.drag, rho_g=case.gas.density, mu_g=case.gas.viscosity, filter_passes=cp.filter_passes,
+                   void_floor=cp.void_fraction_floor, pressure_gradient=cp.pressure_gradient)  # fmt: skip
+        self.coupling_md = md  # the mesh the particles are located on
+        if md.comm.size > 1 and case.run.particle_partition == "work":  # boxes of equal DEM work
+            self.coupling_md = load_msh(md.source, MPI.COMM_SELF, gdim=md.gdim)  # the whole mesh, on every rank
+            self.coupler = OwnerCoupler.build(self.ma, md.mesh, gas.Q, self.coupling_md.mesh, self.depth, **law)
+            dem.attach_exchange(BoxExchange(md.comm, dim=md.gdim), distribute=True)
+        else:
+            self.coupler = Coupler(self.ma, **law)
+            if md.comm.size > 1:  # particles live with the mesh partition (seed 001 sec 2.5)
+                dem.attach_exchange(ParticleExchange(self.ma, cell_owners(md.mesh)), distribute=True)
         self.fixed = case.particles.fixed
         self._located = -1  # the DEM's `layout` the coupler's cells and weights were found for (`located`)
         self._fluid_tau = None  # min m_p/K_p if the FLUID record is already that of the next step (PCPM)
-        self.outlet_facets = self._outlet_facet_mask()
+        self.outlet_facets = self._outlet_facet_mask(self.coupling_md)
         self.t = 0.0
         self.steps = 0
         self.left_outlet = 0
@@ -165,17 +173,29 @@ class CoupledSolver:
         eps0 = self.project()[0]
         gas.set_void_fraction(eps0)
 
+    @property
+    def num_nodes(self) -> int:
+        """Gas nodes of the whole mesh (every rank's owned nodes)."""
+        return self._n_nodes
+
+    def partition_line(self) -> str:
+        """How the mesh and the particles are shared among the ranks (for the log)."""
+        if isinstance(self.coupler, OwnerCoupler):
+            return ("the mesh in blocks, the particles in boxes of equal DEM work (run.particle_partition = "
+                    "'work'), each coupled on its own rank over the whole mesh")  # fmt: skip
+        return "the mesh in columns, each particle on the rank owning its cell (run.particle_partition = 'mesh')"
+
     # ------------------------------------------------------------------------------------------ setup
-    def _outlet_facet_mask(self) -> np.ndarray:
-        """Boolean over local facets: True on facets whose tag is an `outlet` boundary."""
-        mesh = self.md.mesh
+    def _outlet_facet_mask(self, md) -> np.ndarray:
+        """Boolean over the local facets of `md`: True on facets whose tag is an `outlet` boundary."""
+        mesh = md.mesh
         fdim = mesh.topology.dim - 1
         mesh.topology.create_entities(fdim)
         nf = mesh.topology.index_map(fdim).size_local + mesh.topology.index_map(fdim).num_ghosts
         mask = np.zeros(nf, dtype=bool)
         for tag, b in self.case.boundary.items():
             if b.type == "outlet":
-                mask[self.md.facets(tag)] = True
+                mask[md.facets(tag)] = True
         return mask
 
     # ----------------------------------------------------------------------------------- the algorithm

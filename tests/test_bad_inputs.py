@@ -204,8 +204,8 @@ ROWS = [
     ("max_clipped_fraction above 1", S("run.max_clipped_fraction", 1.5), ["[run] max_clipped_fraction"]),
     ("particle_partition misspelt", S("run.particle_partition", "cells"),
      ["[run] particle_partition = 'cells'", "'work'"]),  # fmt: skip
-    ("particle_partition work in a coupled run", S("run.particle_partition", "work"),
-     ["[run] particle_partition = 'work'", "mode = 'dem'", "'cfd-dem'"]),  # fmt: skip
+    ("particle_partition work in a gas-only run", both(S("run.mode", "gas"), S("run.particle_partition", "work")),
+     ["[run] particle_partition = 'work'", "mode = 'gas'", "'cfd-dem'"]),  # fmt: skip
     # [mesh]
     ("builtin misspelt", S("mesh.builtin", "wang3d"), ["[mesh] builtin = 'wang3d'", "'wang2d'"]),
     ("level misspelt", S("mesh.level", "ultra"), ["[mesh] level = 'ultra'"]),

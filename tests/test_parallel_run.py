@@ -65,9 +65,11 @@ def serial(tmp_path_factory):
     return out
 
 
-def test_two_ranks_follow_the_serial_bed(serial, tmp_path):
+@pytest.mark.parametrize("partition", ["mesh", "work"])
+def test_two_ranks_follow_the_serial_bed(serial, tmp_path, partition):
+    """Particles by the mesh partition, or in boxes of equal work coupled on their own ranks (the mesh in blocks)."""
     out = tmp_path / "run"
-    febed(out, 0.01, 2, *HALFWAY, *SHORT_STEPS)
+    febed(out, 0.01, 2, *HALFWAY, *SHORT_STEPS, "--set", f"run.particle_partition={partition}")
     a, b = probes(serial), probes(out)
     assert len(a["time"]) == len(b["time"]) == 11 and a["step"][-1] == b["step"][-1] == 200
     for k in a:
@@ -104,7 +106,8 @@ def test_restart_on_two_ranks_onto_one_and_back(tmp_path):
     (pc, mc) = by_gid(split)
     assert mc["ranks"] == 1 and np.array_equal(pc["gid"], pa["gid"])
     assert probes(split)["particles"][-1] == 4080
-    febed(split, 0.02, 2, "--restart")  # and back onto 2 ranks from the one-rank checkpoint
+    # and back onto 2 ranks from the one-rank checkpoint, the particles now in boxes of equal work
+    febed(split, 0.02, 2, "--restart", "--set", "run.particle_partition=work")
     (pd, md) = by_gid(split)
     assert md["ranks"] == 2 and np.array_equal(pd["gid"], pa["gid"])
 

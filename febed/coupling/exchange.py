@@ -72,6 +72,7 @@ class Coupler:
     the filter and the division by the node volumes, so the nodal fields equal the serial ones to round-off
     (tests/parallel/test_mpi_coupling.py). Take the cells from `particles.cell` (`reset_cells`) before
     locating: they follow the rows through sorting and migration, arrivals from other ranks carry -1.
+    Particles shared by work instead are coupled by `febed.coupling.owners.OwnerCoupler`.
     """
 
     def __init__(self, ma: MeshArrays, drag: str, rho_g: float, mu_g: float, filter_passes: int = 1,
@@ -82,6 +83,7 @@ class Coupler:
         if not 0.0 <= void_floor <= 1.0:
             raise ValueError(f"void_floor: the void-fraction floor must be in [0, 1], got {void_floor}")
         self.ma = ma
+        self.gas_ma = ma  # the nodal fields' mesh arrays (`febed.coupling.owners.OwnerCoupler`: another mesh's)
         self.law = get_drag_law(drag)
         self.rho_g, self.mu_g = float(rho_g), float(mu_g)
         self.filter_passes = int(filter_passes)
@@ -207,8 +209,8 @@ class Coupler:
             if a.shape != shape:
                 raise ValueError(f"{name}: must have shape {shape}, got {a.shape}")
         cur, nxt = self._scratch(2 + g + (g if F_explicit is not None else 0))
-        exchange_project_kernel(ma.cell_dofs, cell, self.w, d3, n_orig, K, v, F, g, cur)
-        ma.accumulate(cur)
+        self._deposit(cell, d3, n_orig, K, v, F, g, cur)
+        ma = self.gas_ma
         for _ in range(self.filter_passes):  # seed 001 eqs 31-34
             filter_kernel(ma.cell_dofs, ma.num_owned_cells, *ma.filter_weights(), cur, nxt)
             ma.accumulate(nxt)
@@ -222,11 +224,17 @@ class Coupler:
             clipped = ma.comm.allreduce(clipped)
         return NodalExchange(alpha, eps, int(clipped), Ki, Kv, Fi)
 
+    def _deposit(self, cell, d3, n_orig, K, v, F, g, out) -> None:
+        """Project the particles' [V_p, K_p, K_p v_p, -F_p] onto `out` (nd, cols), summed over ranks (collective)."""
+        exchange_project_kernel(self.ma.cell_dofs, cell, self.w, d3, n_orig, K, v, F, g, out)
+        self.gas_ma.accumulate(out)
+
     def _scratch(self, cols: int):
         """Two (nd, cols) nodal arrays reused between calls (the projection and the filter's ping-pong)."""
         s = self._nodal.get(cols)
+        nd = self.gas_ma.num_dofs
         if s is None:
-            s = self._nodal[cols] = (np.zeros((self.ma.num_dofs, cols)), np.zeros((self.ma.num_dofs, cols)))
+            s = self._nodal[cols] = (np.zeros((nd, cols)), np.zeros((nd, cols)))
         return s
 
 

@@ -12,9 +12,9 @@ without lists (the first migration after a restart) 1 + its contacts that carry 
 are the particles within the halo reach of another rank's box. Migration, ghost updates and reductions are
 the base class's.
 
-It needs no mesh and serves pure-DEM runs. A coupled run interpolates the gas to a particle and deposits it
-on the rank owning its mesh cell, so it keeps the mesh partition: coupling the particles on their own ranks is
-the part of this decomposition febed does not have yet (docs/scaling.md).
+It needs no mesh. It shares the particles of pure-DEM runs by default and of coupled runs with
+`particle_partition = "work"`, whose particles are then coupled on their own ranks over the whole mesh
+(`febed.coupling.owners`; docs/scaling.md).
 """
 
 from __future__ import annotations

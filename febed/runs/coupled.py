@@ -374,9 +374,11 @@ def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
     s = run.solver
     start = f"restarted from {run.restarted_from} at t = {s.t:.6g} s" if ckpt else "cfd-dem"
     log.info(
-        f"{start}: {comm.allreduce(s.dem.particles.n_owned)} particles, {s.ma.num_dofs} nodes, "
+        f"{start}: {comm.allreduce(s.dem.particles.n_owned)} particles, {s.num_nodes} nodes, "
         f"drag {case.coupling.drag}, DEM step {s.dem.dt:.3e} s, to t = {case.run.end_time:g} s"
     )
+    if comm.size > 1:
+        log.info(s.partition_line())
     run_to_end(run, case.run.end_time)
     t = s.timers
     total = t.dem + t.coupling + t.gas + t.output
