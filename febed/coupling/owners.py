@@ -55,6 +55,16 @@ def touched_nodes(cell_dofs, cell, mark):
     return out
 
 
+@njit(cache=True)
+def add_rows(out, rows, src, src_rows):
+    """out[rows[i]] += src[src_rows[i]] for every i, repeated rows summed in order (out and src 2D)."""
+    for i in range(rows.size):
+        r = rows[i]
+        s = src_rows[i]
+        for a in range(out.shape[1]):
+            out[r, a] += src[s, a]
+
+
 def dof_inputs(mesh, Q) -> np.ndarray:
     """The mesh file's node number of each local dof of the P1/Q1 space Q (its dofs are the mesh vertices)."""
     nv = NUM_VERTICES[_kind(mesh)]
@@ -159,13 +169,13 @@ class NodeOwners:
         out[:] = 0.0
         loc = self.local[nodes]
         mine = (loc >= 0) & (loc < self.num_owned)
-        out[loc[mine]] += whole[nodes[mine]]  # each node once in `nodes`
+        add_rows(out, loc[mine], whole, nodes[mine])
         far, send, recv = self._plan(nodes[~mine])  # ghost rows here too: their owners sum them
         k = whole.shape[1]
         asked = self._ask(far, send, recv)
         got = np.empty((asked.size, k))
         self.comm.Alltoallv([np.ascontiguousarray(whole[far]), send * k], [got, recv * k])
-        np.add.at(out, asked, got)
+        add_rows(out, asked, got, np.arange(asked.size))  # a node may come from several ranks
         self.sent += int(far.size)
 
 
@@ -186,6 +196,7 @@ class OwnerCoupler(Coupler):
         self.gas_ma = gas_ma
         self.nodes = nodes
         self._mark = np.zeros(whole_ma.num_dofs, dtype=np.bool_)
+        self._touched = None  # the nodes of the particles' cells, found once per `locate`
         g = whole_ma.gdim
         nw = whole_ma.num_dofs
         self._gas_whole = [np.zeros((nw, g)), np.zeros(nw), np.zeros((nw, g))]
@@ -203,8 +214,22 @@ class OwnerCoupler(Coupler):
         return cls(gas_ma, whole_ma, nodes, **kw)
 
     def touched(self, cell: np.ndarray | None = None) -> np.ndarray:
-        """The whole-mesh nodes of the cells of `cell` (default: the particles' current cells)."""
-        return touched_nodes(self.ma.cell_dofs, self.cell if cell is None else cell, self._mark)
+        """The whole-mesh nodes of the cells of `cell` (default: the particles' cells since the last `locate`)."""
+        if cell is not None:
+            return touched_nodes(self.ma.cell_dofs, cell, self._mark)
+        if self._touched is None:
+            self._touched = touched_nodes(self.ma.cell_dofs, self.cell, self._mark)
+        return self._touched
+
+    def locate(self, x: np.ndarray) -> np.ndarray:
+        """As `Coupler.locate`, on the whole mesh: every particle inside the domain is found."""
+        self._touched = None
+        return super().locate(x)
+
+    def reset_cells(self, cell: np.ndarray | None = None) -> None:
+        """As `Coupler.reset_cells`."""
+        self._touched = None
+        super().reset_cells(cell)
 
     def _gathered(self, u_nodes, eps_nodes, gradp_nodes):
         whole = self._gas_whole
@@ -230,5 +255,5 @@ class OwnerCoupler(Coupler):
         if buf is None:
             buf = self._sums[cols] = np.zeros((self.ma.num_dofs, cols))
         exchange_project_kernel(self.ma.cell_dofs, cell, self.w, d3, n_orig, K, v, F, g, buf)
-        self.nodes.add_to_owners(self.touched(cell), buf, out)
+        self.nodes.add_to_owners(self.touched(None if cell is self.cell else cell), buf, out)
         self.gas_ma.update_ghosts(out)

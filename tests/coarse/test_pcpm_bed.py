@@ -1,5 +1,5 @@
 """The PCPM 2D bed of seed 000 (`demos/wang2d/coarse/pcpm2.toml`: 1,020 groups of 8 originals, 0.9 m/s)
-runs 1 s stably on 1 and 2 ranks (slow, `make test-all`).
+runs 1 s stably on 1 and 2 ranks, on 2 with the particles by the mesh partition and by work (slow, `make test-all`).
 
 Stable: the run finishes (no particle outside the mesh, no overlap above `run.max_overlap`, no NaN: any of
 these stops a run with exit status 3), every original is still in a group, and the energy the events inject
@@ -23,13 +23,14 @@ CASE = Path(__file__).parents[2] / "demos" / "wang2d" / "coarse" / "pcpm2.toml"
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ranks", [1, 2])
-def test_pcpm_bed_runs_one_second(tmp_path, ranks):
+@pytest.mark.parametrize(("ranks", "partition"), [(1, "mesh"), (2, "mesh"), (2, "work")])
+def test_pcpm_bed_runs_one_second(tmp_path, ranks, partition):
     if ranks == 2 and shutil.which("mpirun") is None:
         pytest.skip("needs mpirun")
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "febed.cli", "run", str(CASE), "--set", f"output.directory={out}"]
     cmd = (MPIRUN if ranks == 2 else []) + cmd + ["--set", "run.end_time=1.0"]
+    cmd += ["--set", f"run.particle_partition={partition}"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=clean_env())
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     status = json.loads((out / "status.json").read_text())
