@@ -29,12 +29,16 @@ from numba import njit
 
 from febed.coupling.exchange import Coupler
 from febed.coupling.mesh_arrays import CELL_KINDS, NUM_VERTICES, MeshArrays, extract_mesh_arrays
-from febed.coupling.projection import exchange_project_kernel
+from febed.coupling.projection import exchange_add_kernel
 
 
 @njit(cache=True)
 def touched_nodes(cell_dofs, cell, mark):
-    """The nodes (sorted) of the cells of `cell` (-1 skipped); `mark` (nd,) bool scratch, left all False."""
+    """The nodes (sorted) of the cells of `cell` (-1 skipped); `mark` (nd,) bool scratch, left all False.
+
+    The work is in the particles and the nodes they touch, not in the whole mesh's nodes.
+    """
+    out = np.empty(min(cell.size * cell_dofs.shape[1], mark.size), dtype=np.int64)
     count = 0
     for p in range(cell.size):
         c = cell[p]
@@ -44,14 +48,11 @@ def touched_nodes(cell_dofs, cell, mark):
             d = cell_dofs[c, k]
             if not mark[d]:
                 mark[d] = True
+                out[count] = d
                 count += 1
-    out = np.empty(count, dtype=np.int64)
-    j = 0
-    for d in range(mark.size):
-        if mark[d]:
-            out[j] = d
-            j += 1
-            mark[d] = False
+    out = np.sort(out[:count])
+    for j in range(count):
+        mark[out[j]] = False
     return out
 
 
@@ -254,6 +255,8 @@ class OwnerCoupler(Coupler):
         buf = self._sums.get(cols)
         if buf is None:
             buf = self._sums[cols] = np.zeros((self.ma.num_dofs, cols))
-        exchange_project_kernel(self.ma.cell_dofs, cell, self.w, d3, n_orig, K, v, F, g, buf)
-        self.nodes.add_to_owners(self.touched(None if cell is self.cell else cell), buf, out)
+        nodes = self.touched(None if cell is self.cell else cell)
+        buf[nodes] = 0.0  # only the rows read back (not the whole mesh's)
+        exchange_add_kernel(self.ma.cell_dofs, cell, self.w, d3, n_orig, K, v, F, g, buf)
+        self.nodes.add_to_owners(nodes, buf, out)
         self.gas_ma.update_ghosts(out)

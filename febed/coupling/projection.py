@@ -84,9 +84,15 @@ def exchange_project_kernel(cell_dofs, cell, w, d3, n_orig, K, v, F, g, nodal):
     reaction -F the gas receives.
     The same sums, in the same order, as `project_kernel` on the stacked values (bit-identical).
     """
+    nodal[:, :] = 0.0
+    exchange_add_kernel(cell_dofs, cell, w, d3, n_orig, K, v, F, g, nodal)
+
+
+@njit(cache=True)
+def exchange_add_kernel(cell_dofs, cell, w, d3, n_orig, K, v, F, g, nodal):
+    """`exchange_project_kernel` without zeroing `nodal` first: the particles' sums are added to it."""
     nv = w.shape[1]
     with_f = nodal.shape[1] == 2 + 2 * g
-    nodal[:, :] = 0.0
     for p in range(cell.size):
         c = cell[p]
         if c < 0:
