@@ -43,6 +43,7 @@ import numpy as np
 import febed.solver
 from febed.case import load_case
 from febed.coupling.locate import locate
+from febed.coupling.owners import OwnerCoupler
 from febed.io.checkpoint import load_checkpoint
 from febed.io.rundir import get_logger
 from febed.parallel.exchange import ParticleExchange
@@ -59,9 +60,10 @@ class _CpuClock:
 
 
 def loads(s) -> dict:
-    """This rank's load now: particles, ghosts, listed pairs, gas nodes."""
+    """This rank's load now: particles, ghosts, listed pairs, gas nodes (and, with the particles by work, the
+    nodes of its particles' cells that it lacks: the census's `foreign_nodes`)."""
     P = s.dem.particles
-    return {
+    out = {
         "owned": int(P.n_owned),
         "ghosts": int(P.n_ghost),
         "pairs": int(s.dem.pairs.size),
@@ -69,6 +71,10 @@ def loads(s) -> dict:
         "nodes_local": int(s.ma.num_dofs),
         "cells_owned": int(s.ma.num_owned_cells),
     }
+    c = s.coupler
+    if isinstance(c, OwnerCoupler) and s.located:
+        out["foreign_nodes"] = int(np.count_nonzero(c.nodes.local[c.touched()] < 0))
+    return out
 
 
 def _timed(comm, fn, reps: int) -> tuple[float, float]:

@@ -40,7 +40,8 @@ pytestmark = pytest.mark.skipif(shutil.which("mpirun") is None, reason="needs mp
 def command(out, end, ranks, *extra):
     sets = [a for s in [*SETTINGS, f"output.directory={out}", f"run.end_time={end}"] for a in ("--set", s)]
     cmd = [sys.executable, "-m", "febed.cli", "run", str(CASE), *sets, *extra]
-    return (MPIRUN if ranks == 2 else []) + cmd
+    mpirun = [*MPIRUN[:2], str(ranks), *MPIRUN[3:]]  # MPIRUN is `mpirun -n 2 ...`
+    return (mpirun if ranks > 1 else []) + cmd
 
 
 def febed(out, end, ranks, *extra):
@@ -65,11 +66,15 @@ def serial(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("partition", ["mesh", "work"])
-def test_two_ranks_follow_the_serial_bed(serial, tmp_path, partition):
-    """Particles by the mesh partition, or in boxes of equal work coupled on their own ranks (the mesh in blocks)."""
+@pytest.mark.parametrize(
+    ("ranks", "partition"),
+    [(2, "mesh"), (2, "work"), *[pytest.param(n, p, marks=pytest.mark.slow) for n in (3, 4) for p in ("mesh", "work")]],
+)
+def test_several_ranks_follow_the_serial_bed(serial, tmp_path, ranks, partition):
+    """Particles by the mesh partition, or in boxes of equal work coupled on their own ranks (the mesh in blocks);
+    on 2 ranks, and on 3 and 4 (oversubscribed) in `make test-all`."""
     out = tmp_path / "run"
-    febed(out, 0.01, 2, *HALFWAY, *SHORT_STEPS, "--set", f"run.particle_partition={partition}")
+    febed(out, 0.01, ranks, *HALFWAY, *SHORT_STEPS, "--set", f"run.particle_partition={partition}")
     a, b = probes(serial), probes(out)
     assert len(a["time"]) == len(b["time"]) == 11 and a["step"][-1] == b["step"][-1] == 200
     for k in a:

@@ -93,7 +93,6 @@ class NodeOwners:
         owner: (Nw,) int32, rank owning whole-mesh node k; remote: (Nw,) int32, its index on that rank;
         local: (Nw,) int32, its local index on this rank (owned or ghost), -1 if this rank lacks it;
         num_owned: this rank's owned nodes (local indices below it).
-        sent: node rows sent so far by `gather` and `add_to_owners` (for the load census).
     """
 
     def __init__(self, whole_inputs: np.ndarray, inputs: np.ndarray, num_owned: int, comm):
@@ -119,7 +118,6 @@ class NodeOwners:
         if comm.allreduce(orphans, op=MPI.SUM):
             raise RuntimeError(f"{orphans} node(s) of the whole mesh have no owner in the distributed mesh: the two "
                                "meshes were not read from the same file")  # fmt: skip
-        self.sent = 0
 
     def _plan(self, far: np.ndarray):
         """The nodes `far` ordered by owner, with the counts to and from every rank (collective)."""
@@ -160,7 +158,6 @@ class NodeOwners:
         for dst, c in zip(whole, cols, strict=True):
             dst[far] = back[:, j : j + c].reshape(dst[far].shape)
             j += c
-        self.sent += int(asked.size)
 
     def add_to_owners(self, nodes: np.ndarray, whole: np.ndarray, out: np.ndarray) -> None:
         """Zero `out` (nd, k), then add the sums `whole` (Nw, k) at `nodes` to their owners' rows (collective).
@@ -177,7 +174,6 @@ class NodeOwners:
         got = np.empty((asked.size, k))
         self.comm.Alltoallv([np.ascontiguousarray(whole[far]), send * k], [got, recv * k])
         add_rows(out, asked, got, np.arange(asked.size))  # a node may come from several ranks
-        self.sent += int(far.size)
 
 
 class OwnerCoupler(Coupler):
