@@ -145,10 +145,13 @@ class CoupledSolver:
         cp = case.coupling
         law = dict(drag=cp.drag, rho_g=case.gas.density, mu_g=case.gas.viscosity, filter_passes=cp.filter_passes,
                    void_floor=cp.void_fraction_floor, pressure_gradient=cp.pressure_gradient)  # fmt: skip
-        self.coupling_md = md  # the mesh the particles are located on
+        located_on = md  # the mesh the particles are located on
         if md.comm.size > 1 and case.run.particle_partition == "work":  # boxes of equal DEM work
-            self.coupling_md = load_msh(md.source, MPI.COMM_SELF, gdim=md.gdim)  # the whole mesh, on every rank
-            self.coupler = OwnerCoupler.build(self.ma, md.mesh, gas.Q, self.coupling_md.mesh, self.depth, **law)
+            if not md.source:
+                raise ValueError("[run] particle_partition = 'work': the coupling reads the whole mesh on every rank "
+                                 "from its .msh file, and this mesh was not read from one (use 'mesh')")  # fmt: skip
+            located_on = load_msh(md.source, MPI.COMM_SELF, gdim=md.gdim)  # the whole mesh, on every rank
+            self.coupler = OwnerCoupler.build(self.ma, md.mesh, gas.Q, located_on.mesh, self.depth, **law)
             dem.attach_exchange(BoxExchange(md.comm, dim=md.gdim), distribute=True)
         else:
             self.coupler = Coupler(self.ma, **law)
@@ -157,7 +160,7 @@ class CoupledSolver:
         self.fixed = case.particles.fixed
         self._located = -1  # the DEM's `layout` the coupler's cells and weights were found for (`located`)
         self._fluid_tau = None  # min m_p/K_p if the FLUID record is already that of the next step (PCPM)
-        self.outlet_facets = self._outlet_facet_mask(self.coupling_md)
+        self.outlet_facets = self._outlet_facet_mask(located_on)  # the whole mesh's DOLFINx objects go after it
         self.t = 0.0
         self.steps = 0
         self.left_outlet = 0
