@@ -7,9 +7,10 @@ with single-core costs per unit of work measured on the same bed (`scaling_measu
 the serial pressure solver and once with the parallel one) and an interconnect of stated bandwidth and
 latency, takes the slowest rank of each phase (DEM, coupling, gas), and checks its 2-rank efficiency
 against a measured one of the same state and its loads against a 2-rank run (docs/scaling.md). Besides
-febed's decomposition it projects three that febed does not have (`VARIANTS`): the particles by DEM work,
-coupled by the owners of their cells, with febed's mesh partition or the mesh in compact blocks, and the
-latter coupled by the particles' owners through a nodal exchange:
+febed's default decomposition it projects three others (`VARIANTS`): the particles by DEM work, coupled by
+the owners of their cells, with the mesh partition or the mesh in compact blocks, and the latter coupled by
+the particles' owners through a nodal exchange, which is febed's `particle_partition = "work"` (its check:
+`--check TAG` with a 2-rank window run with `--set run.particle_partition=work --tag TAG_work`):
 
     python benchmarks/scaling_measure.py --restart RUN_DIR                        # serial costs
     python benchmarks/scaling_measure.py --restart RUN_DIR --warmup 0.001 --sim-time 0.001 --rebuilds 40 \
@@ -274,6 +275,12 @@ def main() -> None:
     ap.add_argument("--to", dest="t1", type=float, default=4.5, help="last snapshot time (s)")
     ap.add_argument("--bandwidth", type=float, default=10e9, help="interconnect bandwidth (B/s)")
     ap.add_argument("--latency", type=float, default=2e-6, help="interconnect latency per message (s)")
+    ap.add_argument(
+        "--check",
+        default="",
+        help="tag of the check's measurements: measured_C2_P1<tag>.json (serial), measured_C2_P2<tag>.json (the "
+        "mesh partition) and measured_C2_P2<tag>_work.json (particle_partition = work), if present",
+    )
     args = ap.parse_args()
     cache = OUT / "scaling_census.npz"
     if not args.run and not cache.is_file() and (ROOT / "runs" / "C2" / "particles").is_dir():
@@ -351,7 +358,12 @@ def main() -> None:
                     )
             result[_result_key(variant)][name] = rows
     if census.get("checkpoint") is not None and bool(census["checkpoint"]):
-        validate(census, cost, net, m1, m2, result)
+        c1 = load_measured("C2", 1, args.check) or m1
+        c2 = load_measured("C2", 2, args.check) if args.check else m2
+        validate(census, cost, net, c1, c2, result)
+        work = load_measured("C2", 2, f"{args.check}_work")
+        if work is not None and "nodal" in variants:
+            validate_work(census, cost, net, c1, work, result)
     plot(result)
     (OUT / "scaling_projection.json").write_text(json.dumps(result, indent=1, default=float))
 
@@ -417,16 +429,11 @@ def validate(census, cost, net, m1, m2, result) -> None:
     t2 = phase_times(census, "C2", 2, cost, net, ck)
     model = {k: t1[k] / (2 * t2[k]) for k in ("dem", "coupling", "gas", "total")}
     r1 = m1["per_rank"][0]
-    sim1 = r1["t1"] - r1["t0"]
     print(f"\nvalidation, C2 from its checkpoint at t = {r1['t0']:.3f} s, 1 -> 2 ranks:")
     result["validation"] = {"model": model, "documented": DOCUMENTED}
     if m2 is not None:
-        sim2 = m2["per_rank"][0]["t1"] - m2["per_rank"][0]["t0"]
-        one = {k: v / sim1 for k, v in r1["split"].items()}
-        two = {k: max(r["split"][k] for r in m2["per_rank"]) / sim2 for k in one}  # the slowest rank, per phase
-        meas = {k: one[k] / (2 * two[k]) for k in ("dem", "coupling", "gas")}
-        meas["total"] = sum(one.values()) / (2 * sum(two.values()))
-        e_wall = r1["wall"] / sim1 / (2 * max(r["wall"] for r in m2["per_rank"]) / sim2)
+        meas = measured_efficiency(m1, m2)
+        e_wall = meas.pop("wall")
         for r in m2["per_rank"]:
             s = r["samples"][0]
             c = {k: int(census[f"C2/2/{k}"][-1][r["rank"]]) for k in ("owned", "ghosts", "pairs")}
@@ -457,6 +464,36 @@ def validate(census, cost, net, m1, m2, result) -> None:
         f"({100 * (model['total'] - reference):+.1f} points{own})"
     )
     result["validation"]["model_snapshots"] = avg
+
+
+def measured_efficiency(m1: dict, m2: dict) -> dict:
+    """Per phase and whole step, from the CPU seconds of the slowest rank in each phase; "wall" from wall time."""
+    r1 = m1["per_rank"][0]
+    sim1 = r1["t1"] - r1["t0"]
+    sim2 = m2["per_rank"][0]["t1"] - m2["per_rank"][0]["t0"]
+    one = {k: v / sim1 for k, v in r1["split"].items()}
+    two = {k: max(r["split"][k] for r in m2["per_rank"]) / sim2 for k in one}
+    meas = {k: one[k] / (2 * two[k]) for k in ("dem", "coupling", "gas")}
+    meas["total"] = sum(one.values()) / (2 * sum(two.values()))
+    meas["wall"] = r1["wall"] / sim1 / (2 * max(r["wall"] for r in m2["per_rank"]) / sim2)
+    return meas
+
+
+def validate_work(census, cost, net, m1, m2, result) -> None:
+    """The model's 2-rank efficiency of the particles by work (mesh in blocks, coupled by the particles' owners)
+    on the checkpoint's state, against a 2-rank window run with `particle_partition = "work"`."""
+    ck = slice(-1, None)
+    t1 = phase_times(census, "C2", 1, cost, net, ck)
+    t2 = phase_times(census, "C2", 2, cost, net, ck, "nodal")
+    model = {k: t1[k] / (2 * t2[k]) for k in ("dem", "coupling", "gas", "total")}
+    meas = measured_efficiency(m1, m2)
+    result["validation_work"] = {"model": model, "measured": meas}
+    print(
+        f"validation, particles by work: model DEM {model['dem']:.1%}, coupling {model['coupling']:.1%}, gas "
+        f"{model['gas']:.1%}, whole step {model['total']:.1%}; measured DEM {meas['dem']:.1%}, coupling "
+        f"{meas['coupling']:.1%}, gas {meas['gas']:.1%}, whole step {meas['total']:.1%} (wall {meas['wall']:.1%}): "
+        f"{100 * (model['total'] - meas['total']):+.1f} points"
+    )
 
 
 def plot(result) -> None:
