@@ -25,8 +25,9 @@ before the output folder is touched. It
     ranks (one-core throughputs measured on the seed beds); with `gas.convection_substeps` the estimated gas
     step spans m convective steps, and each extra explicit sub-step adds `PREDICTOR_SHARE` of a gas step;
     refused when even `FAST` times faster it would exceed `MAX_WALL_DAYS`;
-  - memory: `PARTICLE_BYTES` per particle and `NODE_BYTES` per mesh node; refused when a quarter of it
-    exceeds the physical memory of the ranks' machine;
+  - memory: `PARTICLE_BYTES` per particle and `NODE_BYTES` per mesh node, plus `WHOLE_MESH_BYTES` per node
+    on every rank of a coupled run whose particles are shared by work (each rank holds the whole mesh's
+    coupling arrays); refused when a quarter of it exceeds the physical memory of the ranks' machine;
   - an inlet velocity whose CFL step on the mean cell is below `dt_min` (the gas step could not follow it),
     and more particles than febed's global ids can number (2^31), are refused even with --force.
 
@@ -67,6 +68,7 @@ FAST = 5.0  # the optimistic estimate assumes throughputs this many times the me
 BED_GAS_SPEED = 5.0
 PARTICLE_BYTES = 2000.0  # memory per particle: arrays, neighbour lists, coupling records, output copies
 NODE_BYTES = 5000.0  # memory per mesh node: gas fields, matrices, preconditioners
+WHOLE_MESH_BYTES = 1000.0  # per node and rank with particle_partition = "work" (hexahedra 0.37 kB, tetrahedra more)
 GAS_MODES = ("cfd-dem", "gas")
 DEM_MODES = ("cfd-dem", "dem", "one-way")
 
@@ -400,6 +402,8 @@ def estimate(case: Case, md, bed, comm=MPI.COMM_WORLD) -> tuple[Estimate, list[s
     if est.dt_dem:
         est.dem_steps = est.gas_steps * est.sub_steps if est.dt_gas else end / est.dt_dem
     est.memory = est.particles * PARTICLE_BYTES + est.nodes * NODE_BYTES
+    if case.run.mode == "cfd-dem" and case.run.particle_partition == "work" and comm.size > 1:
+        est.memory += est.nodes * WHOLE_MESH_BYTES * comm.size  # the whole mesh's coupling arrays on every rank
     gas_cost = GAS_SECONDS * (1.0 + PREDICTOR_SHARE * (est.convective - 1))
     est.wall = (est.particles * est.dem_steps * DEM_SECONDS + est.nodes * est.gas_steps * gas_cost) / comm.size
     if est.dt_dem and est.dt_gas and est.sub_steps > MAX_SUBSTEPS:

@@ -3,7 +3,8 @@
 A box of 2 mm cells with 1 mm glass beads (U_mf = 0.54 m/s by Wen and Yu): at U_f = 1.2 m/s the bed is
 fluidized and the estimate's gas step is the CFL limit at BED_GAS_SPEED U_f; at 0.3 m/s (a fixed bed) and
 without particles it is the CFL limit at U_f or dt_max, whichever is smaller. With convective sub-steps the
-gas step spans as many CFL steps as dt_max allows, up to k, and each extra sub-step costs a predictor.
+gas step spans as many CFL steps as dt_max allows, up to k, and each extra sub-step costs a predictor. With
+the particles shared by work a coupled run holds the whole mesh's coupling arrays on every rank.
 """
 
 from __future__ import annotations
@@ -12,7 +13,16 @@ import pytest
 
 from febed.case import load_case
 from febed.coarse.pcpm import u_mf_wen_yu
-from febed.preflight import BED_GAS_SPEED, DEM_SECONDS, GAS_SECONDS, PREDICTOR_SHARE, preflight
+from febed.preflight import (
+    BED_GAS_SPEED,
+    DEM_SECONDS,
+    GAS_SECONDS,
+    NODE_BYTES,
+    PARTICLE_BYTES,
+    PREDICTOR_SHARE,
+    WHOLE_MESH_BYTES,
+    preflight,
+)
 
 CASE = """
 [run]
@@ -88,3 +98,21 @@ def test_convective_substeps_lengthen_the_gas_step_up_to_dt_max_and_cost_predict
         assert gas == pytest.approx(expected, rel=1e-9)
     gas_only = estimate(tmp_path, 1.2, count=0, mode="gas", k=4)
     assert gas_only.convective == 1 and gas_only.dt_gas == pytest.approx(2e-4, rel=1e-12)
+
+
+@pytest.mark.mpi
+def test_particles_by_work_count_the_whole_mesh_on_every_rank(mpi_tmp_path):
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    text = CASE.format(mode="cfd-dem", velocity=1.2, count=300, k=1)
+    paths = {p: mpi_tmp_path / f"by-{p}.toml" for p in ("mesh", "work")}
+    if comm.rank == 0:  # one writer: the folder is every rank's
+        for p, path in paths.items():
+            path.write_text(text.replace("[run]\n", f'[run]\nparticle_partition = "{p}"\n', 1))
+    comm.barrier()
+    by_mesh, by_work = (preflight(load_case(paths[p])).estimate for p in ("mesh", "work"))
+    assert by_mesh.memory == pytest.approx(by_mesh.particles * PARTICLE_BYTES + by_mesh.nodes * NODE_BYTES)
+    whole = by_work.nodes * WHOLE_MESH_BYTES * comm.size if comm.size > 1 else 0.0  # one rank: no second copy
+    assert by_work.nodes == by_mesh.nodes == 341  # 10 x 30 cells of the box
+    assert by_work.memory - by_mesh.memory == pytest.approx(whole, rel=1e-12, abs=1e-6)

@@ -16,8 +16,9 @@ node numbers, which both meshes keep); `OwnerCoupler` is the `Coupler` doing the
 same as the mesh partition's, added in another order: the nodal fields agree to round-off
 (tests/parallel/test_mpi_owner_coupling.py).
 
-The whole mesh's coupling arrays cost every rank what they cost a serial run (about 0.3 kB per node for
-hexahedra): the price of locating a particle anywhere without redistributing the mesh as the boxes move.
+The whole mesh's coupling arrays cost every rank what they cost a serial run (0.37 kB per node for
+hexahedra, more for tetrahedra; `febed.preflight.WHOLE_MESH_BYTES`): the price of locating a particle
+anywhere without redistributing the mesh as the boxes move.
 """
 
 from __future__ import annotations
