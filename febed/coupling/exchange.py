@@ -232,8 +232,8 @@ class Coupler:
     def _scratch(self, cols: int):
         """Two (nd, cols) nodal arrays reused between calls (the projection and the filter's ping-pong)."""
         s = self._nodal.get(cols)
-        nd = self.gas_ma.num_dofs
         if s is None:
+            nd = self.gas_ma.num_dofs
             s = self._nodal[cols] = (np.zeros((nd, cols)), np.zeros((nd, cols)))
         return s
 

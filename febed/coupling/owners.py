@@ -157,7 +157,7 @@ class NodeOwners:
         self.comm.Alltoallv([out, recv * width], [back, send * width])
         j = 0
         for dst, c in zip(whole, cols, strict=True):
-            dst[far] = back[:, j : j + c].reshape(dst[far].shape)
+            dst[far] = back[:, j : j + c].reshape((far.size, *dst.shape[1:]))
             j += c
 
     def add_to_owners(self, nodes: np.ndarray, whole: np.ndarray, out: np.ndarray) -> None:
