@@ -10,18 +10,39 @@ in CPU seconds of each rank, to benchmarks/out/measured_<case>_P<ranks>[<tag>].j
         [--warmup 0.004] [--sim-time 0.01] [--set KEY=VALUE ...] [--tag NAME] [--rebuilds N]
     python benchmarks/scaling_measure.py --restart RUN_DIR --staged --tag _staged
     mpirun -n 2 python benchmarks/scaling_measure.py --restart RUN_DIR --barriers --tag _barriers
+    mpirun -n 2 python benchmarks/scaling_measure.py --restart RUN_DIR --concurrent --tag _concurrent
+    python benchmarks/scaling_measure.py --restart RUN_DIR --owners --tag _owners
     mpirun -n 2 python benchmarks/scaling_measure.py --pingpong
+    [mpirun -n 2] python benchmarks/scaling_measure.py --restart RUN_DIR --warmup 0.001 --sim-time 0.001 \
+        --calls 500 --tag _calls
+    [mpirun -n 2] python benchmarks/scaling_measure.py --restart RUN_DIR --profile [--tag NAME]
 
-`--rebuilds N` then times N pair-list rebuilds (fastest and median); serially also N rebuilds that restore
-the contact history by key, as every rank's rebuild does on several ranks, and the locating of every
-particle: the parallel rebuild's own work, on one core. `--staged` runs the window on one process with the DEM
-stepping as every rank of a parallel run does (a kernel call per stage of each step, a ghost update between
-them with nothing to send, rebuilds migrating and restoring the contact history by key): the DEM cost per
-pair of the parallel code path. `--barriers` starts each phase of the step with a barrier whose time is
-recorded apart ("waits"), so that a phase's time is its own work, not the wait for another rank.
-`--pingpong` measures instead, between two ranks of this machine (shared memory), the latency, the
-bandwidth and an 8-byte allreduce, and the MPI calls of a ghost update and of a rebuild's exchanges,
-emulated with `--ghosts` rows and `--movers` leaving particles.
+Options that add to the window or change it:
+
+- `--rebuilds N`: then N pair-list rebuilds (fastest and median); serially also N rebuilds that restore the
+  contact history by key and the locating of every particle (the parallel rebuild's own work, on one core),
+  and N fills of the drag-weighted pressure operator through PETSc's COO assembly, which the gas step does on
+  several ranks only (on one process the matrix is built on the assembled values).
+- `--calls N`: then N of each call of the gas step and the coupling that exchanges between ranks or reduces
+  over them (halo scatters, the extra columns' scatter, a PETSc ghost update, reductions); run serially and on
+  2 ranks, the difference is what each call costs on several ranks beyond one process.
+- `--staged`: on one process, the DEM steps as every rank of a parallel run does (a kernel call per stage of
+  each step, a ghost update between them with nothing to send, rebuilds migrating and restoring the contact
+  history by key): the DEM cost per pair of the parallel code path.
+- `--owners`: on one process, the coupling goes through the nodes' owners over the whole mesh's arrays, as
+  with `particle_partition = "work"` on several ranks: its coupling cost per particle.
+- `--concurrent` (on several ranks): every rank runs the serial window alone, each phase started together
+  with a barrier: the serial costs per unit of work while every core of the machine does the same phase, as
+  the ranks of a parallel run do (kernels that stream their arrays slow down when the cores share the memory
+  bandwidth).
+- `--barriers`: each phase of the step starts with a barrier whose time is recorded apart ("waits"), so that
+  a phase's time is its own work, not the wait for another rank.
+- `--profile`: the timed window under cProfile, one file per rank
+  (`profile_<case>_P<ranks><tag>_r<rank>.pstats`); `profile_compare.py` sets a 2-rank profile against the
+  serial one function by function, to find the work that does not divide by the ranks.
+- `--pingpong`: instead of a window, between two ranks of this machine (shared memory), the latency, the
+  bandwidth and an 8-byte allreduce, and the MPI calls of a ghost update and of a rebuild's exchanges,
+  emulated with `--ghosts` rows and `--movers` leaving particles.
 
 CPU seconds are the measure to use serially on a machine shared with other jobs: a descheduled process
 loses wall time, not CPU time. On several ranks they are not: a rank waiting for a descheduled partner
@@ -29,6 +50,7 @@ polls, and its waiting counts as CPU time too.
 """
 
 import argparse
+import cProfile
 import json
 import shutil
 import tempfile
@@ -44,6 +66,7 @@ import febed.solver
 from febed.case import load_case
 from febed.coupling.locate import locate
 from febed.coupling.owners import OwnerCoupler
+from febed.gas.petsc_coo import coo_matrix
 from febed.io.checkpoint import load_checkpoint
 from febed.io.rundir import get_logger
 from febed.parallel.exchange import ParticleExchange
@@ -208,6 +231,26 @@ def timed_calls(comm, fn, reps: int) -> list[float]:
     return [float(t.min()), float(np.median(t))]
 
 
+def exchange_calls(s, comm) -> dict:
+    """The gas step's and the coupling's calls that exchange between ranks (or reduce over them), one of each.
+
+    On one process they do little or nothing; on several each costs the software's overhead as well as the
+    messages (`scaling_projection.py` counts how many a gas step makes).
+    """
+    import dolfinx.la
+
+    g = s.gas
+    vec = s.ma._vector(g.gdim)  # the coupling's nodal vector (`MeshArrays.accumulate`)
+    return {
+        "scatter_forward": vec.scatter_forward,  # a DOLFINx halo update of a nodal field
+        "scatter_reverse": lambda: vec.scatter_reverse(dolfinx.la.ScatterMode.add),  # nodal sums to owners
+        "vec_scatter": lambda: g.ops.extension.extend("q", g._q.vector, g._q.x.array),  # extra columns
+        "ghost_update": lambda: g.pressure.x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD),
+        "allreduce": lambda: comm.allreduce(1.0, op=MPI.MAX),  # a float (mpi4py's pickled reduction)
+        "Allreduce": lambda: comm.Allreduce(MPI.IN_PLACE, np.zeros(2), op=MPI.MAX),  # a buffer
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--case", default=str(ROOT / "demos" / "pseudo2d" / "C2.toml"))
@@ -229,6 +272,17 @@ def main() -> None:
         help="on one process, step the DEM the way every rank of a parallel run does (staged kernels, "
         "rebuilds through the particle exchange)",
     )  # fmt: skip
+    parser.add_argument(
+        "--concurrent", action="store_true",
+        help="on several ranks, every rank runs the serial window alone, each phase started together: the "
+        "single-core costs with every core doing the same phase",
+    )  # fmt: skip
+    parser.add_argument(
+        "--owners", action="store_true",
+        help="on one process, couple through the particles' owners (the coupling of particle_partition = work)",
+    )  # fmt: skip
+    parser.add_argument("--calls", type=int, default=0, help="then time this many of each exchange call")
+    parser.add_argument("--profile", action="store_true", help="record the timed window with cProfile, per rank")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "out"))
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
@@ -245,16 +299,29 @@ def main() -> None:
             return
         args.restart = str(ROOT / "runs" / "C2")
     PETSc.Log.begin()  # PETSc's event times: the linear solves' share of the gas phase
-    tmp = Path(comm.bcast(tempfile.mkdtemp(prefix="febed-measure-") if comm.rank == 0 else None, root=0))
+    concurrent = args.concurrent and comm.size > 1
+    run_comm = MPI.COMM_SELF if concurrent else comm  # concurrent: every rank runs the whole case alone
+    if concurrent:
+        tmp = Path(tempfile.mkdtemp(prefix="febed-measure-"))
+    else:
+        tmp = Path(comm.bcast(tempfile.mkdtemp(prefix="febed-measure-") if comm.rank == 0 else None, root=0))
     quiet = [f"output.directory={tmp}", "output.field_interval=100", "output.particle_interval=100"]
     case = load_case(args.case, quiet + args.set)
     febed.solver.time = _CpuClock  # the solver's split DEM / coupling / gas / output in CPU seconds
-    log = get_logger(None, comm)
-    run = CoupledRun(case, tmp, log, comm, restart=load_checkpoint(Path(args.restart), comm))
+    log = get_logger(None, run_comm)
+    run = CoupledRun(case, tmp, log, run_comm, restart=load_checkpoint(Path(args.restart), run_comm))
     s = run.solver
-    if args.staged and comm.size == 1:  # an exchange on one process: no messages, the parallel code path
+    if args.staged and run_comm.size == 1:  # an exchange on one process: no messages, the parallel code path
         s.dem.attach_exchange(ParticleExchange(s.ma, cell_owners(s.md.mesh)))
-    waits = _barriers(s, comm) if args.barriers else None
+    if args.owners and run_comm.size == 1:  # the coupling of `particle_partition = "work"`, on one process
+        cp = case.coupling
+        s.coupler = OwnerCoupler.build(
+            s.ma, s.md.mesh, s.gas.Q, s.md.mesh, s.depth, drag=cp.drag, rho_g=case.gas.density,
+            mu_g=case.gas.viscosity, filter_passes=cp.filter_passes, void_floor=cp.void_fraction_floor,
+            pressure_gradient=cp.pressure_gradient,
+        )  # fmt: skip
+        s._located = -1  # locate the particles again, on the new coupler
+    waits = _barriers(s, comm) if args.barriers or concurrent else None
     run.advance_to(s.t + args.warmup)
     comm.barrier()
     before = s.timers.as_dict()
@@ -265,10 +332,19 @@ def main() -> None:
     w0, c0 = time.perf_counter(), time.process_time()
     sim0 = s.t
     samples = []
+    profile = cProfile.Profile() if args.profile else None
+    if profile:
+        profile.enable()
     while s.t < sim0 + args.sim_time - 1e-12:
         run.advance_to(min(s.t + 0.002, sim0 + args.sim_time))
         samples.append(loads(s))
     w1, c1 = time.perf_counter(), time.process_time()
+    if profile:
+        profile.disable()
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        profile.dump_stats(
+            Path(args.out) / f"profile_{Path(args.case).stem}_P{comm.size}{args.tag}_r{comm.rank}.pstats"
+        )
     comm.barrier()
     after = s.timers.as_dict()
     ksp1 = _ksp_seconds()
@@ -289,6 +365,10 @@ def main() -> None:
         "start": start,
         "samples": samples,
     }
+    mine["concurrent"] = concurrent
+    if concurrent:
+        comm.barrier()
+        shutil.rmtree(tmp, ignore_errors=True)
     if args.rebuilds:
         mine["rebuild"] = timed_calls(comm, s.dem.rebuild, args.rebuilds)
         mine["rebuild_loads"] = loads(s)
@@ -305,6 +385,16 @@ def main() -> None:
 
             mine["rebuild_keyed"] = timed_calls(comm, keyed, args.rebuilds)
             mine["locate"] = timed_calls(comm, locate_all, args.rebuilds)
+            W = s.gas.pressure.weighted  # the drag-weighted operator, if the case uses it
+            if W is not None:  # its fill through PETSc's COO assembly, which only runs on several ranks
+                rows = np.repeat(np.arange(W.indptr.size - 1), np.diff(W.indptr))
+                coo = coo_matrix(MPI.COMM_SELF, W.indptr.size - 1, rows, W.cols)
+                if coo is not None:
+                    mine["coo_fill"] = timed_calls(comm, lambda: coo.fill(W.vals), args.rebuilds)
+                    mine["coo_entries"] = int(W.cols.size)
+                    coo.M.destroy()
+    if args.calls:
+        mine["calls"] = {k: timed_calls(comm, fn, args.calls) for k, fn in exchange_calls(s, comm).items()}
     every = comm.gather(mine, root=0)
     if comm.rank == 0:
         name = Path(args.case).stem
