@@ -4,25 +4,32 @@ The census (`scaling_census.py`) repeats febed's decomposition on one process fo
 and counts, per rank, the owned and ghost particles, listed and force pairs, owned gas nodes and halo nodes,
 and the bytes sent per gas step, over particle snapshots of a bubbling bed. The model turns these into time
 with single-core costs per unit of work measured on the same bed (`scaling_measure.py`, serially, once with
-the serial pressure solver and once with the parallel one) and an interconnect of stated bandwidth and
-latency, takes the slowest rank of each phase (DEM, coupling, gas), and checks its 2-rank efficiency
-against a measured one of the same state and its loads against a 2-rank run (docs/scaling.md). Besides
-febed's default decomposition it projects three others (`VARIANTS`): the particles by DEM work, coupled by
-the owners of their cells, with the mesh partition or the mesh in compact blocks, and the latter coupled by
-the particles' owners through a nodal exchange, which is febed's `particle_partition = "work"` (its check:
-`--check TAG` with a 2-rank window run with `--set run.particle_partition=work --tag TAG_work`):
+the serial pressure solver and once with the parallel one; on several ranks each core's costs grow by the
+slow-down measured with every core working, and the exchange calls and the pressure operator's COO fill add
+their measured costs) and an interconnect of stated bandwidth and latency, takes the slowest rank of each
+phase (DEM, coupling, gas), and checks its 2-rank efficiency against a measured one of the same state and its
+loads against a 2-rank run (docs/scaling.md). Besides febed's default decomposition it projects three others
+(`VARIANTS`): the particles by DEM work, coupled by the owners of their cells, with the mesh partition or the
+mesh in compact blocks, and the latter coupled by the particles' owners through a nodal exchange, which is
+febed's `particle_partition = "work"` (its check: `--check TAG` with a 2-rank window run with `--set
+run.particle_partition=work --tag TAG_work`):
 
     python benchmarks/scaling_measure.py --restart RUN_DIR                        # serial costs
     python benchmarks/scaling_measure.py --restart RUN_DIR --warmup 0.001 --sim-time 0.001 --rebuilds 40 \
         --tag _rebuild                                                            # rebuild costs
-    python benchmarks/scaling_measure.py --restart RUN_DIR --tag _gamg \
-        --set 'gas.petsc_options="-febed_pressure_pc_type gamg -febed_pressure_pc_gamg_square_graph 0"'
+    GAMG='-febed_pressure_weighted_pc_type gamg -febed_pressure_weighted_pc_gamg_square_graph 0'
+    python benchmarks/scaling_measure.py --restart RUN_DIR --tag _gamg --set "gas.petsc_options=\"$GAMG\""
+    mpirun -n 2 python benchmarks/scaling_measure.py --restart RUN_DIR --concurrent --tag _concurrent  # every core busy
+    python benchmarks/scaling_measure.py --restart RUN_DIR --owners --tag _owners  # the work partition's coupling
+    [mpirun -n 2] python benchmarks/scaling_measure.py --restart RUN_DIR --warmup 0.001 --sim-time 0.001 \
+        --calls 500 --tag _calls                                                  # exchange calls, 1 and 2 ranks
     mpirun -n 2 python benchmarks/scaling_measure.py --restart RUN_DIR            # 2-rank check
     mpirun -n 2 python benchmarks/scaling_measure.py --pingpong                   # shared-memory figures
-    python benchmarks/scaling_projection.py --run RUN_DIR [--from 4.0 --to 4.5] [--bandwidth 10e9 --latency 2e-6]
+    python benchmarks/scaling_projection.py --run RUN_DIR [--from 1.2 --to 1.5] [--bandwidth 10e9 --latency 2e-6]
 
-RUN_DIR is a C2 run folder (`febed run demos/pseudo2d/C2.toml`, at least to t = 4.5 s with the default
-particle output every 0.02 s, plus its checkpoint for the measurements). The census is cached in
+RUN_DIR is a C2 run folder with particle snapshots over the census window (`--from`, `--to`) and its checkpoint
+at the window's end, which the measurements continue (`febed run demos/pseudo2d/C2.toml --set run.end_time=1.5
+--set output.particle_interval=0.01`: snapshots every 0.01 s). The census is cached in
 benchmarks/out/scaling_census.npz; without `--run` the cached census is used. Writes
 benchmarks/out/scaling_projection.png and benchmarks/out/scaling_projection.json.
 """
@@ -56,6 +63,13 @@ GAS_REDUCTIONS = 30  # global reductions per gas step (CFL, mass balance, CG dot
 # ghost refresh), shared memory; over a network the model adds latency and bytes / bandwidth on top.
 UPDATE_CALLS = 17e-6
 REBUILD_CALLS = 141e-6
+# The calls per gas step that exchange between ranks or reduce over them outside PETSc's solvers (counted with
+# `scaling_measure.py --profile` over a C2 window), each costing on several ranks `call_s` beyond one process
+# (`scaling_measure.py --calls`): the gas step's halo updates of nodal fields, scatters of the sweeps' extra
+# columns, PETSc ghost updates and reductions; the coupling's nodal sums (reverse and forward scatters) and
+# reductions.
+GAS_CALLS = {"scatter_forward": 5, "vec_scatter": 7, "ghost_update": 2, "allreduce": 4, "Allreduce": 3}
+COUPLING_CALLS = {"scatter_forward": 2, "scatter_reverse": 2, "allreduce": 2}
 # A decomposition of the particles apart from the mesh's: each gas step, a particle whose cell another rank
 # owns goes there (position, velocity, diameter, id: 8 doubles) and its forces come back (drag and pressure
 # gradient force, 6 doubles), in one exchange each way; taken to cost the calls of a ghost update.
@@ -148,12 +162,20 @@ def load_measured(name: str, P: int, tag: str = "") -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None) -> dict:
+def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, loaded: dict | None = None,
+               calls: tuple[dict, dict] | None = None, owners: dict | None = None) -> dict:  # fmt: skip
     """Single-core costs per unit of work from the serial measurements (CPU seconds of each phase).
 
     m1: the serial run with its default pressure solver (a Cholesky factorisation on meshes of at most 50,000
     nodes); m1_iter: the same window with the parallel runs' pressure solver (CG + GAMG) on one process, whose
-    gas cost per node is used for every run on several ranks and for meshes too large for the factorisation.
+    gas cost per node is used for every run on several ranks and for meshes too large for the factorisation;
+    m1_rebuild: the parallel rebuild's own work and the COO fill of the drag-weighted operator, on one core;
+    loaded: the serial window run on every core at once, phases started together (`--concurrent`), whose
+    costs over m1's per phase are the slow-down of a core while the others do the same phase (`load_factor`,
+    applied on several ranks); calls: the exchange calls timed serially and on 2 ranks (`--calls`), whose
+    difference is what each costs on several ranks beyond one process (`call_s`); owners: the window coupled
+    the way `particle_partition = "work"` couples, on one process (`--owners`), its coupling cost per particle
+    that of the "nodal" decomposition.
     """
     r = m1["per_rank"][0]
     sim = r["t1"] - r["t0"]
@@ -166,12 +188,38 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None) -
     if m1_iter is not None:
         ri = m1_iter["per_rank"][0]
         gas_iter = ri["split"]["gas"] * r["gas_steps"] / ri["gas_steps"]
-    keyed = locate = 0.0
+    keyed = locate = coo = 0.0
+    entries = 0
     if m1_rebuild is not None:
         rb = m1_rebuild["per_rank"][0]
         keyed = (rb["rebuild_keyed"][0] - rb["rebuild"][0]) / rb["rebuild_loads"]["pairs"]
         locate = rb["locate"][0] / rb["rebuild_loads"]["owned"]
+        if "coo_fill" in rb:
+            coo, entries = rb["coo_fill"][0] / rb["coo_entries"], rb["coo_entries"]
+    factor = {"dem": 1.0, "coupling": 1.0, "gas": 1.0}
+    if loaded is not None:
+        for k in factor:
+            own = np.mean([r["split"][k] - r["waits"][k] for r in loaded["per_rank"]])  # less the barriers
+            factor[k] = float(own / split[k] * r["gas_steps"] / loaded["per_rank"][0]["gas_steps"])
+    call_s = {}
+    if calls is not None:
+        one, two = calls
+        alone = one["per_rank"][0]["calls"]
+        for k in alone:
+            call_s[k] = max(0.0, max(r["calls"][k][0] for r in two["per_rank"]) - alone[k][0])
+    per_particle = 1e6 * split["coupling"] / (r["gas_steps"] * owned)
+    per_particle_owners = per_particle
+    if owners is not None:
+        ro = owners["per_rank"][0]
+        per_particle_owners = (
+            per_particle * ro["split"]["coupling"] / split["coupling"] * r["gas_steps"] / ro["gas_steps"]
+        )
     return {
+        "us_per_particle_step_owners": per_particle_owners,
+        "load_factor": factor,
+        "call_s": call_s,
+        "us_per_entry_coo": 1e6 * coo,
+        "entries_per_node": entries / loads[0]["nodes_owned"],
         "sim": sim,
         "us_per_pair_keyed_rebuild": 1e6 * keyed,
         "us_per_particle_locate": 1e6 * locate,
@@ -180,7 +228,7 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None) -
         "builds_per_s": r["builds"] / sim,
         "us_per_pair_step": 1e6 * split["dem"] / (r["dem_steps"] * pairs),
         "us_per_node_step": 1e6 * split["gas"] / (r["gas_steps"] * nodes),
-        "us_per_particle_step": 1e6 * split["coupling"] / (r["gas_steps"] * owned),
+        "us_per_particle_step": per_particle,
         "us_per_node_step_iter": 1e6 * gas_iter / (r["gas_steps"] * nodes),
         "output_s_per_s": split.get("output", 0.0) / sim,
         "pairs": pairs,
@@ -222,6 +270,8 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
     """
     L, B = net["latency"], net["bandwidth"]
     red = L * math.ceil(math.log2(P)) if P > 1 else 0.0
+    f = cost["load_factor"] if P > 1 else {"dem": 1.0, "coupling": 1.0, "gas": 1.0}  # every core busy
+    calls = cost["call_s"] if P > 1 else {}
     nd, nb = cost["dem_steps_per_s"], cost["builds_per_s"]
     ng = cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1.0)
     key, gkey = _keys(name, P, variant)
@@ -230,7 +280,8 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
     nbr = c[f"{key}ghost_nbrs"][rows]
     mig = c[f"{key}migrated"][rows]
     dem = nd * (
-        fp * cost["us_per_pair_step"] * 1e-6 + (UPDATE_CALLS + nbr * L + sent * UPDATE_BYTES / B + red) * (P > 1)
+        fp * cost["us_per_pair_step"] * f["dem"] * 1e-6
+        + (UPDATE_CALLS + nbr * L + sent * UPDATE_BYTES / B + red) * (P > 1)
     )
     gap = float(np.mean(np.diff(c["times"])))  # migration is counted between snapshots
     dem = (
@@ -241,27 +292,31 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
     owned = c[f"{key}owned"][rows]
     listed = c[f"{key}pairs"][rows]
     extra = listed * cost["us_per_pair_keyed_rebuild"] + owned * cost["us_per_particle_locate"]
-    dem = dem + nb * extra * 1e-6 * (P > 1)  # the parallel rebuild's own work: history by key, locating
+    dem = dem + nb * extra * f["dem"] * 1e-6 * (P > 1)  # the parallel rebuild's own work: history by key, locating
     coupled = c[f"{key}owned"][rows]  # the particles each rank couples: in its cells, or its own
     if variant == "nodal" and P > 1:  # gas values of other ranks' nodes in, the particles' nodal sums out
-        cpl = ng * coupled * cost["us_per_particle_step"] * 1e-6
+        cpl = ng * coupled * cost["us_per_particle_step_owners"] * f["coupling"] * 1e-6
         foreign = c[f"{key}foreign_nodes"][rows]
         cpl = cpl + ng * (foreign * NODAL_BYTES / B + 2 * c[f"{key}node_nbrs"][rows] * L + TRANSFER_CALLS)
     elif key != f"{name}/{P}/":  # particles to the owners of their cells and their forces back
         coupled = coupled + c[f"{key}transfer_in"][rows] - c[f"{key}transfer_out"][rows]
-        cpl = ng * coupled * cost["us_per_particle_step"] * 1e-6
+        cpl = ng * coupled * cost["us_per_particle_step"] * f["coupling"] * 1e-6
         moved = c[f"{key}transfer_out"][rows] + c[f"{key}transfer_in"][rows]
         cpl = cpl + ng * (moved * TRANSFER_BYTES / B + 2 * c[f"{key}transfer_nbrs"][rows] * L + TRANSFER_CALLS)
     else:
-        cpl = ng * coupled * cost["us_per_particle_step"] * 1e-6
+        cpl = ng * coupled * cost["us_per_particle_step"] * f["coupling"] * 1e-6
     nodes = c[f"{gkey}nodes"][None, :]
     halo = c[f"{gkey}halo"][None, :]
     hn = c[f"{gkey}halo_nbrs"][None, :]
+    per_node = cost["us_per_node_step" if name == "C2" and P == 1 else "us_per_node_step_iter"]
+    coo = cost["us_per_entry_coo"] * cost["entries_per_node"] * (nodes + halo) * (P > 1)  # L_w's COO fill
     gas = ng * (
-        nodes * cost["us_per_node_step" if name == "C2" and P == 1 else "us_per_node_step_iter"] * 1e-6
+        (nodes * per_node + coo) * f["gas"] * 1e-6
         + GAS_EXCHANGES * (hn * L + halo * GAS_VALUES * 8 / B)
         + GAS_REDUCTIONS * red
+        + sum(n * calls.get(k, 0.0) for k, n in GAS_CALLS.items())
     )
+    cpl = cpl + ng * sum(n * calls.get(k, 0.0) for k, n in COUPLING_CALLS.items())
     out = {k: float(np.mean(np.max(v, axis=1))) for k, v in (("dem", dem), ("coupling", cpl), ("gas", gas))}
     out["output"] = cost["output_s_per_s"] / P
     out["total"] = sum(out.values())
@@ -271,8 +326,8 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", default=None, help="C2 run folder with particle snapshots (else the cached census)")
-    ap.add_argument("--from", dest="t0", type=float, default=4.0, help="first snapshot time (s)")
-    ap.add_argument("--to", dest="t1", type=float, default=4.5, help="last snapshot time (s)")
+    ap.add_argument("--from", dest="t0", type=float, default=1.2, help="first snapshot time (s)")
+    ap.add_argument("--to", dest="t1", type=float, default=1.5, help="last snapshot time (s)")
     ap.add_argument("--bandwidth", type=float, default=10e9, help="interconnect bandwidth (B/s)")
     ap.add_argument("--latency", type=float, default=2e-6, help="interconnect latency per message (s)")
     ap.add_argument(
@@ -307,13 +362,21 @@ def main() -> None:
             "`python benchmarks/scaling_measure.py --restart RUN_DIR` first"
         )
         return
-    for tag, what in (
-        ("_gamg", "the gas cost per node with CG + GAMG (taken as the serial solver's)"),
-        ("_rebuild", "the parallel rebuild's own work (taken as zero)"),
+    for P, tag, what in (
+        (1, "_gamg", "the gas cost per node with CG + GAMG (taken as the serial solver's)"),
+        (1, "_rebuild", "the parallel rebuild's own work and the COO fill (taken as zero)"),
+        (2, "_concurrent", "the slow-down of a core while every core works (taken as none)"),
+        (1, "_calls", "the exchange calls' own cost (taken as zero)"),
+        (1, "_owners", "the coupling cost per particle through the particles' owners (taken as the cells')"),
+        (2, "_calls", "the exchange calls' own cost (taken as zero)"),
     ):
-        if load_measured("C2", 1, tag) is None:
-            print(f"note: no {OUT / f'measured_C2_P1{tag}.json'}: {what}; see the commands in the docstring")
-    cost = unit_costs(m1, load_measured("C2", 1, "_gamg"), load_measured("C2", 1, "_rebuild"))
+        if load_measured("C2", P, tag) is None:
+            print(f"note: no {OUT / f'measured_C2_P{P}{tag}.json'}: {what}; see the commands in the docstring")
+    calls = load_measured("C2", 1, "_calls"), load_measured("C2", 2, "_calls")
+    cost = unit_costs(
+        m1, load_measured("C2", 1, "_gamg"), load_measured("C2", 1, "_rebuild"),
+        load_measured("C2", 2, "_concurrent"), calls if None not in calls else None, load_measured("C2", 1, "_owners"),
+    )  # fmt: skip
     cost["h_ratio"] = float(census["C2/h_min"] / census["C3/h_min"])  # gas steps per second, fine / intermediate
     net = {"bandwidth": args.bandwidth, "latency": args.latency}
     times = np.asarray(census["times"])
@@ -330,6 +393,13 @@ def main() -> None:
         f"{cost['builds_per_s']:.0f} list builds per simulated s (C3: {cost['h_ratio']:.2f} x the gas steps); "
         f"a parallel rebuild's own work {cost['us_per_pair_keyed_rebuild'] * 1e3:.1f} ns per listed pair (history by "
         f"key) + {cost['us_per_particle_locate'] * 1e3:.1f} ns per owned particle (locating)"
+    )
+    lf, cs = cost["load_factor"], cost["call_s"]
+    print(
+        f"on several ranks: a core's costs times DEM {lf['dem']:.3f}, coupling {lf['coupling']:.3f}, gas "
+        f"{lf['gas']:.3f} while every core works; the drag-weighted operator's COO fill "
+        f"{cost['us_per_entry_coo'] * 1e3:.2f} ns per entry ({cost['entries_per_node']:.1f} entries per node); "
+        "exchange calls (µs beyond one process's): " + ", ".join(f"{k} {v * 1e6:.1f}" for k, v in cs.items())
     )
     print(
         f"interconnect: {args.bandwidth / 1e9:g} GB/s, {args.latency * 1e6:g} µs per message; reductions log2(P) "
