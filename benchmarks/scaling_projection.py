@@ -199,7 +199,7 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
     factor = {"dem": 1.0, "coupling": 1.0, "gas": 1.0}
     if loaded is not None:
         for k in factor:
-            own = np.mean([r["split"][k] - r["waits"][k] for r in loaded["per_rank"]])  # less the barriers
+            own = np.mean([q["split"][k] - q["waits"][k] for q in loaded["per_rank"]])  # less the barriers
             factor[k] = float(own / split[k] * r["gas_steps"] / loaded["per_rank"][0]["gas_steps"])
     call_s = {}
     if calls is not None:
