@@ -314,12 +314,7 @@ def main() -> None:
     if args.staged and run_comm.size == 1:  # an exchange on one process: no messages, the parallel code path
         s.dem.attach_exchange(ParticleExchange(s.ma, cell_owners(s.md.mesh)))
     if args.owners and run_comm.size == 1:  # the coupling of `particle_partition = "work"`, on one process
-        cp = case.coupling
-        s.coupler = OwnerCoupler.build(
-            s.ma, s.md.mesh, s.gas.Q, s.md.mesh, s.depth, drag=cp.drag, rho_g=case.gas.density,
-            mu_g=case.gas.viscosity, filter_passes=cp.filter_passes, void_floor=cp.void_fraction_floor,
-            pressure_gradient=cp.pressure_gradient,
-        )  # fmt: skip
+        s.coupler = OwnerCoupler.build(s.ma, s.md.mesh, s.gas.Q, s.md.mesh, s.depth, **s.law)
         s._located = -1  # locate the particles again, on the new coupler
     waits = _barriers(s, comm) if args.barriers or concurrent else None
     run.advance_to(s.t + args.warmup)

@@ -196,11 +196,7 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
         locate = rb["locate"][0] / rb["rebuild_loads"]["owned"]
         if "coo_fill" in rb:
             coo, entries = rb["coo_fill"][0] / rb["coo_entries"], rb["coo_entries"]
-    factor = {"dem": 1.0, "coupling": 1.0, "gas": 1.0}
-    if loaded is not None:
-        for k in factor:
-            own = np.mean([q["split"][k] - q["waits"][k] for q in loaded["per_rank"]])  # less the barriers
-            factor[k] = float(own / split[k] * r["gas_steps"] / loaded["per_rank"][0]["gas_steps"])
+    factor = load_factor(m1, loaded)
     call_s = {}
     if calls is not None:
         one, two = calls
@@ -234,6 +230,17 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
         "pairs": pairs,
         "nodes": nodes,
     }
+
+
+def load_factor(m1: dict, loaded: dict | None) -> dict:
+    """Per phase, a core's CPU seconds while every core works (`loaded`, `--concurrent`) over m1's alone."""
+    factor = {"dem": 1.0, "coupling": 1.0, "gas": 1.0}
+    if loaded is not None:
+        r = m1["per_rank"][0]
+        for k in factor:
+            own = np.mean([q["split"][k] - q["waits"][k] for q in loaded["per_rank"]])  # less the barriers
+            factor[k] = float(own / r["split"][k] * r["gas_steps"] / loaded["per_rank"][0]["gas_steps"])
+    return factor
 
 
 # The decompositions of the projection: particles with the cells of febed's partition (what febed does); the
@@ -334,7 +341,8 @@ def main() -> None:
         "--check",
         default="",
         help="tag of the check's measurements: measured_C2_P1<tag>.json (serial), measured_C2_P2<tag>.json (the "
-        "mesh partition) and measured_C2_P2<tag>_work.json (particle_partition = work), if present",
+        "mesh partition), and if present measured_C2_P2<tag>_work.json (particle_partition = work) and "
+        "measured_C2_P2<tag>_concurrent.json (the busy cores' slow-down measured with them)",
     )
     args = ap.parse_args()
     cache = OUT / "scaling_census.npz"
@@ -430,10 +438,17 @@ def main() -> None:
     if census.get("checkpoint") is not None and bool(census["checkpoint"]):
         c1 = load_measured("C2", 1, args.check) or m1
         c2 = load_measured("C2", 2, args.check) if args.check else m2
-        validate(census, cost, net, c1, c2, result)
+        check_cost = cost
+        loaded = load_measured("C2", 2, f"{args.check}_concurrent") if args.check else None
+        if loaded is not None:  # the slow-down of a busy core measured with the check's own windows
+            check_cost = {**cost, "load_factor": load_factor(c1, loaded)}
+            lf = check_cost["load_factor"]
+            print(f"\nthe check's own slow-down of a busy core: DEM {lf['dem']:.3f}, coupling {lf['coupling']:.3f}, "
+                  f"gas {lf['gas']:.3f}")  # fmt: skip
+        validate(census, check_cost, net, c1, c2, result)
         work = load_measured("C2", 2, f"{args.check}_work")
         if work is not None and "nodal" in variants:
-            validate_work(census, cost, net, c1, work, result)
+            validate_work(census, check_cost, net, c1, work, result)
     plot(result)
     (OUT / "scaling_projection.json").write_text(json.dumps(result, indent=1, default=float))
 

@@ -145,6 +145,7 @@ class CoupledSolver:
         cp = case.coupling
         law = dict(drag=cp.drag, rho_g=case.gas.density, mu_g=case.gas.viscosity, filter_passes=cp.filter_passes,
                    void_floor=cp.void_fraction_floor, pressure_gradient=cp.pressure_gradient)  # fmt: skip
+        self.law = law  # the coupler's drag law and options (a coupler built apart takes the same)
         located_on = md  # the mesh the particles are located on
         if md.comm.size > 1 and case.run.particle_partition == "work":  # boxes of equal DEM work
             if not md.source:
