@@ -33,8 +33,8 @@ Options that add to the window or change it:
   with `particle_partition = "work"` on several ranks: its coupling cost per particle.
 - `--concurrent` (on several ranks): every rank runs the serial window alone, each phase started together
   with a barrier: the serial costs per unit of work while every core of the machine does the same phase, as
-  the ranks of a parallel run do (kernels that stream their arrays slow down when the cores share the memory
-  bandwidth).
+  the ranks of a parallel run do (the cores share caches and memory bandwidth; on the 2-core machine of
+  docs/scaling.md the slow-down varied from 0 to 18 % between runs).
 - `--barriers`: each phase of the step starts with a barrier whose time is recorded apart ("waits"), so that
   a phase's time is its own work, not the wait for another rank.
 - `--profile`: the timed window under cProfile, one file per rank
@@ -359,8 +359,8 @@ def main() -> None:
         "builds": int(s.dem.pairs.builds - builds0),
         "start": start,
         "samples": samples,
+        "concurrent": concurrent,  # every rank ran the serial window alone
     }
-    mine["concurrent"] = concurrent
     if concurrent:
         comm.barrier()
         shutil.rmtree(tmp, ignore_errors=True)
