@@ -46,6 +46,7 @@ HistoryParams = namedtuple("HistoryParams", "stiffness ce friction stiffness_t c
 # run that compiles the kernels calls the loop's own, a run from the cache the integrator's copy); with
 # reassociation the two copies differ in their last bits (tests/dem/test_compiled_equals_cached.py).
 FAST = {"nsz", "arcp", "contract", "afn"}
+_MAX_TABLED = 128  # largest pair ratio l^3 whose cube root `_pair_ratio` takes from a table
 
 HistoryParams.__doc__ = "linear + tangential spring stiffness_t (N/m) with damping ratio cet, Coulomb cap friction."
 
@@ -198,6 +199,25 @@ GroupParams.__doc__ = (
 )
 
 
+# Cube roots of the whole numbers of originals a pair of equal groups can have (l^3 = m_eff / m_ref = n), a
+# compile-time constant of the kernels: in a PCPM bed most contacts are between groups of one size.
+_CUBE_ROOTS = tuple(float(np.cbrt(n)) for n in range(_MAX_TABLED + 1))
+
+
+@njit(cache=True, inline="always", fastmath=FAST, error_model="numpy")
+def _pair_ratio(r):
+    """The pair ratio l = r^(1/3) for l^3 = r: from `_CUBE_ROOTS` when r is a whole number to 1e-9, else by pow.
+
+    The table's root is corrected to first order in the rounding of r (relative error (r/n - 1)^2 / 9 < 1e-18,
+    below double precision), so both paths give the cube root to rounding; the table spares the pow of every
+    contact between equal groups, about a fifth of a PCPM bed's DEM time.
+    """
+    n = int(r + 0.5)
+    if n >= 1 and n <= _MAX_TABLED and abs(r - n) <= 1e-9 * n:
+        return _CUBE_ROOTS[n] * (1.0 + (r - n) / (3.0 * n))
+    return r ** (1.0 / 3.0)
+
+
 @njit(cache=True, fastmath=FAST, error_model="numpy")
 def linear_groups(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, dt_eval, dt_store):
     """`linear` for particle-groups of any sizes: TM scaling with the pair's own ratio l, force on a (N).
@@ -207,7 +227,7 @@ def linear_groups(p, delta, nx, ny, nz, vx, vy, vz, m_eff, mt_eff, hx, hy, hz, d
     c_e = ce sqrt(l) (capped at 0.99, overdamped otherwise) as `febed.coarse.tm.tm_contact_params`, so that the
     force is l^3 times the original pair's at overlap delta/l (seed 000 eq 24); Coulomb friction unchanged.
     """
-    l_ = (m_eff / p.m_ref) ** (1.0 / 3.0)
+    l_ = _pair_ratio(m_eff / p.m_ref)
     kn = p.stiffness * l_ * l_
     ce = min(p.ce * math.sqrt(l_), 0.99)
     vn = vx * nx + vy * ny + vz * nz

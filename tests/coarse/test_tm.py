@@ -165,6 +165,18 @@ def test_parcel_drag_is_n_orig_times_original(name):
         assert np.allclose(f[0], k[0] * (np.r_[u[p, :2], 0.0] - vv[0]), rtol=1e-13)
 
 
+def test_group_pair_ratio_cube_root():
+    """The groups' law takes l = (m_eff/m_ref)^(1/3) from a table for whole numbers: equal to pow to rounding."""
+    from febed.dem.contact import _MAX_TABLED, _pair_ratio
+
+    rng = np.random.default_rng(3)
+    for n in range(1, _MAX_TABLED + 2):  # whole numbers, their rounding neighbours, and values between them
+        for r in (n, n * (1 + 2e-16), n * (1 - 4e-16), n * (1 + 5e-10), n * (1 + 2e-9), n + 0.37):
+            assert _pair_ratio(r) == pytest.approx(r ** (1 / 3), rel=1e-15, abs=0)
+    for r in np.r_[rng.uniform(0.01, 1.0, 500), rng.uniform(1.0, 200.0, 500)]:  # pieces and large pairs
+        assert _pair_ratio(r) == pytest.approx(r ** (1 / 3), rel=1e-15, abs=0)
+
+
 def test_group_contacts_scale_per_pair():
     """PCPM groups: the per-pair law reproduces the uniform-ratio TM parameters and contact time."""
     from febed.coarse.tm import use_group_contacts
