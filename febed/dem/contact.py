@@ -46,7 +46,6 @@ HistoryParams = namedtuple("HistoryParams", "stiffness ce friction stiffness_t c
 # run that compiles the kernels calls the loop's own, a run from the cache the integrator's copy); with
 # reassociation the two copies differ in their last bits (tests/dem/test_compiled_equals_cached.py).
 FAST = {"nsz", "arcp", "contract", "afn"}
-_MAX_TABLED = 128  # largest pair ratio l^3 whose cube root `_pair_ratio` takes from a table
 
 HistoryParams.__doc__ = "linear + tangential spring stiffness_t (N/m) with damping ratio cet, Coulomb cap friction."
 
@@ -201,6 +200,7 @@ GroupParams.__doc__ = (
 
 # Cube roots of the whole numbers of originals a pair of equal groups can have (l^3 = m_eff / m_ref = n), a
 # compile-time constant of the kernels: in a PCPM bed most contacts are between groups of one size.
+_MAX_TABLED = 128  # largest pair ratio l^3 whose cube root `_pair_ratio` takes from the table
 _CUBE_ROOTS = tuple(float(np.cbrt(n)) for n in range(_MAX_TABLED + 1))
 
 
