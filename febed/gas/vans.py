@@ -707,7 +707,6 @@ class VANSSolver:
             if inflow <= 0.0 or abs(inflow - outflow - storage_rate) <= par.mass_tolerance * inflow:
                 break
             atol *= 0.1
-            print("IMB", (inflow - outflow - storage_rate) / inflow, par.mass_tolerance)
         self._p.x.array[:] += par.density / dt * self.phi
         self._p.x.array[self.bc.pressure_dofs] = self.bc.pressure_values
         return iterations, (inflow, outflow, None, storage_rate)
