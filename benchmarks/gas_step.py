@@ -108,7 +108,7 @@ def main(warmup=100, steps=20, mass_tolerance=1e-6, level="intermediate", drag_w
         print(machine())
         projection = "drag-weighted" if drag_weighted else "constant-Laplacian"
         print(f"{mesh} {level}: {nodes} nodes, {comm.size} rank(s), {projection} projection, setup {setup:.1f} s")
-        print(f"gas step: {1e3 * total:.1f} ms/step wall, {1e3 * cpu:.1f} ms CPU ({steps} steps after {warmup})")
+        print(f"gas step: {1e3 * total:.2f} ms/step wall, {1e3 * cpu:.2f} ms CPU ({steps} steps after {warmup})")
         print(f"  load average {os.getloadavg()[0]:.2f} (other jobs on the machine inflate wall times)")
         for name, v in acc.items():
             print(f"  {name:12s} {1e3 * v / steps:7.2f} ms")
