@@ -65,6 +65,7 @@ from mpi4py import MPI
 import dolfinx.fem
 import numpy as np
 
+from febed.gas import kernels
 from febed.gas.operators import normal_tensor_weights, tag_normal_weights
 from febed.meshing import facet_area
 
@@ -249,11 +250,11 @@ class NodalBoundary:
 
     def apply_velocity(self, q: np.ndarray, t: float) -> None:
         """Impose the velocity conditions on the superficial nodal velocity q (n, gdim) in place, at time t."""
-        q[self.noslip] = 0.0
+        kernels.zero_rows(q, self.noslip)
         for inlet in self.inlets:
-            q[inlet.nodes] = (inlet.speed(t) * inlet.a_total / inlet.a_open) * inlet.weight[:, None] * inlet.normal
+            kernels.set_rows(q, inlet.nodes, inlet.speed(t) * inlet.a_total / inlet.a_open, inlet.weight, inlet.normal)
         if self.slip.size:
-            q[self.slip] = np.einsum("nij,nj->ni", self.slip_proj, q[self.slip])
+            kernels.project_rows(q, self.slip, self.slip_proj)
 
     def wall_friction(self, K: np.ndarray, eps_mu: np.ndarray, volume: np.ndarray) -> np.ndarray:
         """K plus the walls' implicit shear coefficient c_i = ε_i μ_eff,i a_i/(λ_i ΔV_i) [kg/(m^3 s)] (a copy if any).
@@ -265,12 +266,9 @@ class NodalBoundary:
         if self.friction_nodes.size == 0 and self.law_nodes.size == 0:
             return K
         K = np.array(K, dtype=float, copy=True)
-        nodes = self.friction_nodes
-        K[nodes] += eps_mu[nodes] * self.friction_area / volume[nodes]
-        nodes = self.law_nodes
-        if nodes.size:
-            inv_lam = porous_slip_inverse(K[nodes], eps_mu[nodes], self.law_h)
-            K[nodes] += eps_mu[nodes] * self.law_area * inv_lam / volume[nodes]
+        kernels.add_wall_friction(
+            K, eps_mu, volume, self.friction_nodes, self.friction_area, self.law_nodes, self.law_area, self.law_h
+        )
         return K
 
     def dirichlet_velocity_nodes(self) -> np.ndarray:
@@ -313,11 +311,12 @@ class _Inlet:
         self.has_side = comm.allreduce(int(side.sum()), op=MPI.SUM) > 0
         self.weight = share.copy()
         self.weight[side] = 0.0  # no drag known yet: the corners are held like the clear-gas wall
+        self._share_area = comm.allreduce(float(np.dot(share, self._flux)), op=MPI.SUM)
         self._update_area()
 
     def _update_area(self) -> None:
         self.a_open = self.comm.allreduce(float(np.dot(self.weight, self._flux)), op=MPI.SUM)
-        if self.a_open <= 1e-9 * self.comm.allreduce(float(np.dot(self.share, self._flux)), op=MPI.SUM):
+        if self.a_open <= 1e-9 * self._share_area:
             self.weight = self.share.copy()  # an inlet of corners only (one cell wide): they carry the inflow
             self.a_open = self.comm.allreduce(float(np.dot(self.weight, self._flux)), op=MPI.SUM)
 

@@ -232,17 +232,101 @@ def repredict(q_star, g_phi, mass, eps, K, rho, dt):  # pragma: no cover
 
 
 @njit(cache=True)
-def max_rate(u, width, n):  # pragma: no cover
-    """max_i |u_i| / Δ_i over the first n nodes [1/s]."""
-    m = 0.0
+def max_rates(u, mu, width, n):  # pragma: no cover
+    """(max_i |u_i|/Δ_i, max_i μ_i/Δ_i²) over the first n nodes: the CFL and Fourier rates before scaling."""
+    rc = 0.0
+    rf = 0.0
     for i in range(n):
         s = 0.0
         for d in range(u.shape[1]):
             s += u[i, d] * u[i, d]
         r = np.sqrt(s) / width[i]
-        if r > m:
-            m = r
-    return m
+        if r > rc:
+            rc = r
+        f = mu[i] / (width[i] * width[i])
+        if f > rf:
+            rf = f
+    return rc, rf
+
+
+# --- boundary conditions (febed.gas.boundary, VANSSolver._with_backflow)
+@njit(cache=True)
+def project_rows(q, rows, proj):  # pragma: no cover
+    """q[rows[k]] = proj[k] q[rows[k]]: the slip walls' tangential projections, in place."""
+    gdim = q.shape[1]
+    qi = np.empty(gdim)
+    for k in range(rows.size):
+        i = rows[k]
+        for d in range(gdim):
+            qi[d] = q[i, d]
+        for d in range(gdim):
+            s = 0.0
+            for e in range(gdim):
+                s += proj[k, d, e] * qi[e]
+            q[i, d] = s
+
+
+@njit(cache=True)
+def zero_rows(q, rows):  # pragma: no cover
+    """q[rows] = 0: the no-slip nodes."""
+    for k in range(rows.size):
+        for d in range(q.shape[1]):
+            q[rows[k], d] = 0.0
+
+
+@njit(cache=True)
+def set_rows(q, rows, scale, weight, normal):  # pragma: no cover
+    """q[rows[k]] = (scale w_k) n: an inlet's nodal superficial velocity."""
+    for k in range(rows.size):
+        v = scale * weight[k]
+        for d in range(q.shape[1]):
+            q[rows[k], d] = v * normal[d]
+
+
+@njit(cache=True)
+def divide_rows(q, eps, u):  # pragma: no cover
+    """The interstitial velocity u = q/ε, row by row."""
+    for i in range(q.shape[0]):
+        for d in range(q.shape[1]):
+            u[i, d] = q[i, d] / eps[i]
+
+
+@njit(cache=True)
+def add_wall_friction(K, eps_mu, volume, friction_nodes, friction_area, law_nodes, law_area, law_h):  # pragma: no cover
+    """K += the walls' implicit shear coefficients in place (`febed.gas.boundary.NodalBoundary.wall_friction`).
+
+    Partial-slip nodes first, ε μ a/ΔV/λ with their own λ folded into `friction_area` (a/λ); then the wall-law
+    nodes, ε μ a (1/λ)/ΔV with 1/λ of `febed.gas.boundary.porous_slip_inverse` at the K so far, operation for
+    operation.
+    """
+    for k in range(friction_nodes.size):
+        i = friction_nodes[k]
+        K[i] += eps_mu[i] * friction_area[k] / volume[i]
+    for k in range(law_nodes.size):
+        i = law_nodes[k]
+        h = law_h[k]
+        kappa = np.sqrt(max(K[i], 0.0) / eps_mu[i])
+        kappa = max(kappa, 1e-12 / h)
+        kh = kappa * h
+        a = np.sqrt(4.0 + kh * kh)
+        inv_lam = a * (a + 2.0) / (kappa * h * h)
+        K[i] += eps_mu[i] * law_area[k] * inv_lam / volume[i]
+
+
+@njit(cache=True)
+def backflow_coefficients(rows, bnormal, q, mass, coef, out):  # pragma: no cover
+    """out[k] = coef max(−q_i·B_i, 0)/ΔV_i at the outlet rows i = rows[k]; True if any is positive."""
+    inflowing = False
+    for k in range(rows.size):
+        i = rows[k]
+        flux = 0.0
+        for d in range(q.shape[1]):
+            flux += bnormal[i, d] * q[i, d]
+        c = coef * max(-flux, 0.0) / mass[i]
+        out[k] = c
+        if c > 0.0:
+            inflowing = True
+    return inflowing
 
 
 # --- the drag-weighted pressure operator (VANSParameters.drag_weighted_projection; febed.gas.weighted)

@@ -260,6 +260,7 @@ class VANSSolver:
         self._wall_c = None  # the walls' implicit shear coefficient of the step [kg/(m^3 s)] (None: no such walls)
         self._substeps = 1  # the step's explicit predictor sub-steps (`_substeps_for`)
         self._outlet_rows = self.bc.pressure_dofs[self.bc.pressure_dofs < self.n_owned]
+        self._backflow_c = np.empty(self._outlet_rows.size)  # `_with_backflow` scratch
         self._sqrt_n = np.sqrt(self.comm.allreduce(self.n_owned, op=MPI.SUM))
         self.phi = np.zeros(self.n_local)
         self._mu_cache = (None, None)
@@ -362,7 +363,8 @@ class VANSSolver:
         self._gradp.x.scatter_forward()
 
     def _check_eps(self, eps: np.ndarray) -> None:
-        if not (np.all(eps[: self.n_owned] > 0.0) and np.all(eps[: self.n_owned] <= 1.0)):
+        e = eps[: self.n_owned]
+        if e.size and not (e.min() > 0.0 and e.max() <= 1.0):  # a NaN fails both
             raise ValueError("eps (void fraction) must lie in (0, 1] at every node")
 
     # ------------------------------------------------------------------------------------ checkpoint
@@ -442,7 +444,7 @@ class VANSSolver:
         return {"u": self._u, "p": self._p, "eps": self._eps}
 
     def _update_u(self) -> None:
-        self.u[:] = self.q / self.eps[:, None]
+        kernels.divide_rows(self.q, self.eps, self.u)
 
     def _ext(self, name: str, f: dolfinx.fem.Function) -> np.ndarray:
         """Values of a Function at the owned, ghost and extra column nodes of the sweeps (up to date ghosts)."""
@@ -484,11 +486,11 @@ class VANSSolver:
         """Global max |u|/Δ and max ν_eff/Δ² [1/s]: CFL and Fourier numbers per unit Δt."""
         n = self.n_owned
         mu = self._viscosity()
-        rate_c = kernels.max_rate(self.u, self.ops.width, n)
+        rate_c, mu_h2 = kernels.max_rates(self.u, mu, self.ops.width, n)
         if self.params.les == "none":
             rate_f = self.params.viscosity / self.params.density / self._h2_min
             return self.comm.allreduce(rate_c, op=MPI.MAX), rate_f
-        rate_f = float(np.max(mu[:n] / self.ops.width[:n] ** 2, initial=0.0)) / self.params.density
+        rate_f = mu_h2 / self.params.density
         buf = np.array([rate_c, rate_f])
         self.comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.MAX)
         return float(buf[0]), float(buf[1])
@@ -668,9 +670,9 @@ class VANSSolver:
         rows = self._outlet_rows
         if self.params.backflow == 0.0 or rows.size == 0:
             return K
-        flux = np.einsum("ij,ij->i", self.ops.bnormal[rows], self.q[rows])  # outward, m^3/s
-        c = 0.5 * self.params.backflow * self.params.density * np.maximum(-flux, 0.0) / self.ops.mass[rows]
-        if not np.any(c > 0.0):
+        c = self._backflow_c
+        coef = 0.5 * self.params.backflow * self.params.density
+        if not kernels.backflow_coefficients(rows, self.ops.bnormal, self.q, self.ops.mass, coef, c):
             return K
         K = K.copy()
         K[rows] += c
