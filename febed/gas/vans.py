@@ -264,6 +264,7 @@ class VANSSolver:
         self._sqrt_n = np.sqrt(self.comm.allreduce(self.n_owned, op=MPI.SUM))
         self.phi = np.zeros(self.n_local)
         self._mu_cache = (None, None)
+        self._rates_cache = (None, None)
         h2 = float(np.min(self.ops.width[: self.n_owned] ** 2, initial=np.inf))
         self._h2_min = self.comm.allreduce(h2, op=MPI.MIN)
         self._drag_rates = np.zeros(self.n_owned)  # K/(ρ ε) of the last step per owned node [1/s] (drag number)
@@ -353,6 +354,7 @@ class VANSSolver:
         self.eps[:] = e
         self._update_u()
         self._mu_cache = (None, None)
+        self._rates_cache = (None, None)
 
     def set_pressure(self, p: float | np.ndarray) -> None:
         """Set the pressure field (initial condition) [Pa]; outlet nodes keep their prescribed value."""
@@ -407,6 +409,7 @@ class VANSSolver:
         self.t = float(t)
         self._update_u()
         self._mu_cache = (None, None)
+        self._rates_cache = (None, None)
 
     # --------------------------------------------------------------------------------------- outputs
     @property
@@ -483,7 +486,16 @@ class VANSSolver:
         return float(min(max(dt, par.dt_min), par.dt_max))
 
     def _rates(self) -> tuple[float, float]:
-        """Global max |u|/Δ and max ν_eff/Δ² [1/s]: CFL and Fourier numbers per unit Δt."""
+        """Global max |u|/Δ and max ν_eff/Δ² [1/s]: CFL and Fourier numbers per unit Δt.
+
+        Computed once per time level, like the viscosity: the end of a step and the next `compute_dt` share it.
+        """
+        if self._rates_cache[0] == self.t:
+            return self._rates_cache[1]
+        self._rates_cache = (self.t, self._global_rates())
+        return self._rates_cache[1]
+
+    def _global_rates(self) -> tuple[float, float]:
         n = self.n_owned
         mu = self._viscosity()
         rate_c, mu_h2 = kernels.max_rates(self.u, mu, self.ops.width, n)
