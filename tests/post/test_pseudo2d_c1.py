@@ -22,19 +22,42 @@ from febed.post import post_run
 DEMO = Path(__file__).parents[2] / "demos" / "pseudo2d"
 
 
-def _run(tmp_path_factory, case: str, end: float | None = None):
-    """A run of `case` for `end` (default FEBED_C1_END) seconds, post-processed over its last 4/5 or 2/3."""
-    end = float(os.environ.get("FEBED_C1_END", "3.0")) if end is None else end
+# seed 001 runs every case 20 s "to reach a steady regime" before averaging; C1 here runs 10 s: its first
+# seconds turn the other way (the start-up), the last five are its steady regime
+C1_END = 10.0
+
+
+def _run_only(tmp_path_factory, case: str, end: float) -> Path:
+    """The output folder of a run of `case` for `end` seconds."""
     out = tmp_path_factory.mktemp("pseudo2d") / case
     cmd = [sys.executable, "-m", "febed.cli", "run", str(DEMO / f"{case}.toml")]
     cmd += ["--set", f"run.end_time={end}", "--set", f"output.directory={out}"]
     subprocess.run(cmd, check=True, capture_output=True)
+    return out
+
+
+def _run(tmp_path_factory, case: str, end: float | None = None):
+    """A run of `case` for `end` (default FEBED_C1_END) seconds, post-processed over its last 4/5 or 2/3."""
+    end = float(os.environ.get("FEBED_C1_END", "3.0")) if end is None else end
+    out = _run_only(tmp_path_factory, case, end)
     return post_run(out, window=(end / (5 if end >= 5 else 3), end), figures=False)
 
 
 @pytest.fixture(scope="module")
-def c1(tmp_path_factory):
-    return _run(tmp_path_factory, "C1", end=5.0)
+def c1_run(tmp_path_factory):
+    return _run_only(tmp_path_factory, "C1", C1_END)
+
+
+@pytest.fixture(scope="module")
+def c1(c1_run):
+    """C1 over 1-5 s: from the first bubbles to the end of the start-up."""
+    return post_run(c1_run, window=(1.0, 5.0), figures=False)
+
+
+@pytest.fixture(scope="module")
+def c1_steady(c1_run):
+    """C1 over 5-10 s: its steady regime."""
+    return post_run(c1_run, window=(5.0, C1_END), figures=False, out=c1_run / "post-steady")
 
 
 @pytest.fixture(scope="module")
