@@ -71,10 +71,14 @@ def test_studies_load():
     t3 = {m.name: m for m in load_study(DEMO / "study-table3.toml").members}
     assert "gas.boundary.inlet.velocity=1.71" in t3["C6"].overrides
     assert "particles.bed_mass=0.125" in t3["C7"].overrides
-    assert "gas.boundary.outlet.particles=false" in t3["C7"].overrides  # the lid of C7.toml
+    assert "gas.boundary.inlet.ramp_time=1.0" in t3["C7"].overrides  # as C7.toml
 
 
-def test_c7_outlet_is_closed_to_the_particles():
-    """C7's start-up slug reaches the outlet: its particles bounce off it; the 75 g cases keep it open."""
-    assert load_case(DEMO / "C7.toml").boundary["outlet"].particles is False
-    assert load_case(DEMO / "C2.toml").boundary["outlet"].particles is True
+def test_c7_ramps_its_inlet_over_a_second_with_the_outlet_open():
+    """Ramped over base.toml's 0.05 s, C7's packed bed rises to the outlet as a slug; over 1 s it does not.
+
+    Every case keeps the outlet open to the particles; the 75 g cases keep the short ramp.
+    """
+    c7, c2 = load_case(DEMO / "C7.toml"), load_case(DEMO / "C2.toml")
+    assert c7.boundary["inlet"].ramp_time == 1.0 and c2.boundary["inlet"].ramp_time == 0.05
+    assert c7.boundary["outlet"].particles is True and c2.boundary["outlet"].particles is True
