@@ -1,7 +1,7 @@
 """Command-line parts of `febed post`, `febed study` and `febed compare`, wired into `febed` by febed/cli.py.
 
     febed post RUN_DIR [--window T0 T1] [--bins NX NZ] [--kernel ngp|cic] [--agitation cell|window]
-                       [--heights H ...] [--no-figures] [-o OUT]
+                       [--heights H ...] [--split DT] [--no-figures] [-o OUT]
     febed study STUDY.toml [--list | --jobs FILE] [--collect-only] [--retry-failed] [--no-fields]
     febed compare RUN_DIR RUN_DIR ... [--labels A B ...] [--window T0 T1 [--window T0 T1 ...]] [-o OUT]
 
@@ -20,6 +20,7 @@ from pathlib import Path
 from febed.post.collect import compare_runs
 from febed.post.grid import BUBBLE_ALPHA
 from febed.post.report import post_run
+from febed.post.windows import split_window, spread, write_windows
 from febed.study import collect, job_lines, load_study, member_states, resume_flags, run_study
 
 
@@ -62,6 +63,13 @@ def add_post_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--depth-bins", type=int, metavar="N", help="bins across the depth (default the built-in mesh's cells)"
+    )
+    p.add_argument(
+        "--split",
+        type=float,
+        metavar="DT",
+        help="also the means over consecutive windows of DT s inside the averaging window (windows.csv, "
+        "windows.png): whether the bed is steady and how much the means of windows that long vary",
     )
     p.add_argument("--no-figures", action="store_true", help="CSV tables only")
     p.add_argument("-o", "--output", help="output folder (default RUN_DIR/post)")
@@ -110,9 +118,32 @@ def cmd_post(args) -> int:
             f"width and {v[key.replace('_all', '_walls')]:.3f} U_f at the side walls (max - min; ~0: two-dimensional); "
             f"solid (front - back)/(front + back) {v[key.replace('spread_all/Uf', 'front_back_asymmetry')]:+.3f}"
         )
-    for f in res.files:
+    files = list(res.files)
+    if args.split is not None:
+        files += _post_windows(run_dir, args, (v["window_t0"], v["window_t1"]))
+    for f in files:
         print(f"  wrote {f}")
     return 0
+
+
+def _post_windows(run_dir: Path, args, window: tuple[float, float]) -> list[Path]:
+    """`febed post --split DT`: the means of consecutive windows, their spread printed; the files written."""
+    rows = split_window(
+        run_dir, window, args.split, bins=tuple(args.bins) if args.bins else None, kernel=args.kernel,
+        agitation=args.agitation, bubble_alpha=args.bubble_alpha,
+    )  # fmt: skip
+    print(f"  {len(rows)} windows of {args.split:g} s from {window[0]:g} s (mean, standard deviation, range):")
+    for key, name, fmt in (
+        ("bed_flux_centre/rhoUf", "bed solid flux / rho U_f, central third", "+.1f"),
+        ("bed_flux_walls/rhoUf", "bed solid flux / rho U_f, outer 15 %", "+.1f"),
+        ("dp_bed_over_weight", "dp_bed / W", ".3f"),
+        ("bubble_fraction", "bubble fraction", ".3f"),
+    ):
+        s = spread(rows, key)
+        print(f"    {name}: {s['mean']:{fmt}} +- {s['std']:.3g} ({s['min']:{fmt}} to {s['max']:{fmt}})")
+    out = Path(args.output) if args.output else run_dir / "post"
+    title = f"{run_dir.name}: means over windows of {args.split:g} s"
+    return write_windows(rows, out, figures=not args.no_figures, title=title)
 
 
 def add_study_parser(subparsers) -> argparse.ArgumentParser:

@@ -28,6 +28,7 @@ import numpy as np
 
 from febed.post.depth import DepthProfile, default_depth_bins
 from febed.post.fields import average_fields, default_bins, make_grid
+from febed.post.grid import BUBBLE_ALPHA
 from febed.post.rundata import list_snapshots, read_status, run_info, select_window
 from febed.post.series import read_series, summarize, weight_per_area
 from febed.post.support import bottom_support
@@ -55,10 +56,12 @@ def _empty_numbers() -> dict:
     return {**{k: math.nan for k in NUMBERS}, "snapshots": 0}
 
 
-def run_row(directory, window=None, fields: bool = True, height: float = 0.092) -> tuple[dict, tuple | None]:
+def run_row(directory, window=None, fields: bool = True, height: float = 0.092, bins=None, kernel: str = "ngp",
+            agitation: str = "cell", bubble_alpha: float = BUBBLE_ALPHA) -> tuple[dict, tuple | None]:  # fmt: skip
     """The comparison's numbers of one run folder (NaN where it has no data) and its flux profile (x/L, flux/ρU_f).
 
-    `window` (s): the averaging window, default the last half of the run's output so far.
+    `window` (s): the averaging window, default the last half of the run's output so far; `bins`, `kernel`,
+    `agitation` and `bubble_alpha` as `febed.post.post_run`'s (default: the built-in mesh's cells, its defaults).
     """
     nan = math.nan
     row = _empty_numbers()
@@ -86,12 +89,13 @@ def run_row(directory, window=None, fields: bool = True, height: float = 0.092) 
     avg = None
     depth = None
     if fields and snaps:
-        grid = make_grid(info, default_bins(directory, info))
+        grid = make_grid(info, bins or default_bins(directory, info))
         if info.dim == 3:
             depth = DepthProfile(info, grid, default_depth_bins(directory, info))
         try:
             select_window(snaps, window)
-            avg = average_fields(directory, window=window, bins=grid.n, visitors=(depth,) if depth else ())
+            avg = average_fields(directory, window=window, bins=grid.n, kernel=kernel, agitation=agitation,
+                                 bubble_alpha=bubble_alpha, visitors=(depth,) if depth else ())  # fmt: skip
         except ValueError:
             avg = None
         if avg is not None:
@@ -224,7 +228,8 @@ def _profile_figure(profiles: dict, height: float, out: Path, title: str = "") -
     return path
 
 
-def _write_rows(rows: list[dict], path: Path) -> None:
+def write_rows(rows: list[dict], path: Path) -> None:
+    """Rows of equal keys as a CSV file at `path` (floats to 6 significant digits)."""
     with open(path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
@@ -253,7 +258,7 @@ def compare_members(study, states, fields: bool = True, height: float = 0.092, o
         if prof is not None:
             profiles[m.name] = prof
     path = out / "comparison.csv"
-    _write_rows(rows, path)
+    write_rows(rows, path)
     if profiles:
         xl = next(iter(profiles.values()))[0]
         same = all(len(p[0]) == len(xl) and np.allclose(p[0], xl) for p in profiles.values())
@@ -308,7 +313,7 @@ def compare_runs(directories, labels=None, windows=None, fields: bool = True, he
         if prof is not None:
             profiles[label] = prof
     path = out / "comparison.csv"
-    _write_rows(rows, path)
+    write_rows(rows, path)
     figs = []
     if profiles:
         with open(out / "profiles_flux.csv", "w", newline="") as f:

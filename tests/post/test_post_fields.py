@@ -487,3 +487,51 @@ def test_depth_profile_solid_volume_weighted_per_band_exact(tmp_path):
     with pytest.raises(ValueError, match="z/H"):
         DepthProfile(info, grid, 3, height=1.5)
     assert np.isnan(DepthProfile(info, grid, 3).spread())  # nothing added: no profile
+
+
+def test_means_over_consecutive_windows(tmp_path, capsys):
+    """`febed post --split DT`: one row per whole window, each what `febed post --window a b` finds there."""
+    from febed.post.cli import main
+    from febed.post.windows import split_window, spread, window_edges
+
+    pos, bins, _ = lattice()
+    vel = np.array([bin_velocity(i, j) for i, j in bins])
+    # the loops turn over at t = 0.45 s: the snapshots at 0-0.4 s go one way, those at 0.5-0.8 s the other
+    run = make_run(tmp_path / "r", [(0.1 * k, pos, vel if k <= 4 else -vel) for k in range(9)])
+    w_a = (RHO_P - RHO_G) * 9.81 * len(pos) * VP / (L * D)
+    t = np.linspace(0, 0.8, 81)
+    with open(run / "probes.csv", "w") as fh:
+        fh.write("time,particles,bed_height,dp_bed\n")
+        for tt in t:
+            fh.write(f"{tt!r},{len(pos)},0.15,{w_a * (1.0 + 0.1 * (tt > 0.4))!r}\n")
+    rows = split_window(run, (0.0, 0.8), 0.4, bins=BINS)
+    assert [(r["window_t0"], r["window_t1"]) for r in rows] == [(0.0, 0.4), (0.4, 0.8)]
+    for r in rows:
+        window = (r["window_t0"], r["window_t1"])
+        ref = post_run(run, window=window, bins=BINS, figures=False, out=tmp_path / "p").values
+        for key in ("dp_bed_over_weight", "bottom_support/W", "bed_height_mean", "bed_flux_centre/rhoUf",
+                    "bed_flux_walls/rhoUf", "bubble_fraction", "snapshots"):  # fmt: skip
+            assert r[key] == pytest.approx(ref[key], rel=1e-12, nan_ok=True), key
+    # window 1: five snapshots one way; window 2: its first snapshot (t = 0.4 s, on the boundary) that way, four back
+    first, second = rows
+    assert first["bed_flux_centre/rhoUf"] > 0 > first["bed_flux_walls/rhoUf"]
+    assert second["bed_flux_centre/rhoUf"] == pytest.approx(-0.6 * first["bed_flux_centre/rhoUf"], rel=1e-12)
+    assert second["bed_flux_walls/rhoUf"] == pytest.approx(-0.6 * first["bed_flux_walls/rhoUf"], rel=1e-12)
+    s = spread(rows, "bed_flux_centre/rhoUf")
+    c = first["bed_flux_centre/rhoUf"]
+    assert s["n"] == 2 and s["mean"] == pytest.approx(0.2 * c) and s["std"] == pytest.approx(1.6 * c / math.sqrt(2))
+    assert (s["min"], s["max"]) == (pytest.approx(-0.6 * c), pytest.approx(c))
+    # whole windows only, without round-off in their edges
+    assert window_edges(0.0, 1.0, 0.3) == [(0.0, 0.3), (0.3, 0.6), (0.6, 0.9)]
+    assert window_edges(0.0, 0.3, 0.1) == [(0.0, 0.1), (0.1, 0.2), (0.2, 0.3)]
+    assert len(window_edges(5.0, 15.0, 1.0)) == 10
+    # the command line: the spread printed, windows.csv (and windows.png) written
+    argv = [str(run), "--bins", "4", "5", "--window", "0", "0.8", "--split", "0.4"]
+    assert main([*argv, "-o", str(tmp_path / "o")]) == 0
+    out = capsys.readouterr().out
+    assert "2 windows of 0.4 s from 0 s" in out and "windows.csv" in out and "windows.png" in out
+    table = np.genfromtxt(tmp_path / "o" / "windows.csv", delimiter=",", names=True)
+    assert table.size == 2 and np.allclose(table["bed_flux_centrerhoUf"], [c, -0.6 * c], rtol=1e-5)
+    for bad, what in (("0", "must be a number > 0"), ("-1", "must be a number > 0"), ("1.0", "longer than")):
+        assert main([str(run), "--window", "0", "0.8", "--split", bad, "--no-figures", "-o", str(tmp_path / "b")]) == 2
+        assert what in capsys.readouterr().err, bad
