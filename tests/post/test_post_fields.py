@@ -535,3 +535,33 @@ def test_means_over_consecutive_windows(tmp_path, capsys):
     for bad, what in (("0", "must be a number > 0"), ("-1", "must be a number > 0"), ("1.0", "longer than")):
         assert main([str(run), "--window", "0", "0.8", "--split", bad, "--no-figures", "-o", str(tmp_path / "b")]) == 2
         assert what in capsys.readouterr().err, bad
+
+
+def test_loops_in_time_demo_draws_each_runs_windows(tmp_path, monkeypatch, capsys):
+    """`demos/pseudo2d/loops_in_time.py`: every run's windows printed as `split_window` gives them, one figure."""
+    import runpy
+    import sys
+    from pathlib import Path
+
+    from febed.post.windows import split_window
+
+    pos, bins, _ = lattice()
+    vel = np.array([bin_velocity(i, j) for i, j in bins])
+    runs = [make_run(tmp_path / f"r{g}", [(0.1 * k, pos, g * vel) for k in range(7)]) for g in (1, 2)]
+    for run in runs:
+        with open(run / "probes.csv", "w") as fh:
+            fh.write("time,particles,bed_height,dp_bed\n")
+            fh.writelines(f"{0.01 * k!r},{len(pos)},0.15,500.0\n" for k in range(61))
+    script = Path(__file__).parents[2] / "demos" / "pseudo2d" / "loops_in_time.py"
+    figure = tmp_path / "loops.png"
+    argv = [str(script), *map(str, runs), "--labels", "one", "two", "--from", "0", "--split", "0.3", "-o", str(figure)]
+    monkeypatch.setattr(sys, "argv", argv)
+    runpy.run_path(str(script), run_name="__main__")
+    out = capsys.readouterr().out
+    assert figure.is_file() and "one:" in out and "two:" in out
+    lines = [ln for ln in out.splitlines() if "centre" in ln]
+    assert len(lines) == 4  # two whole windows of 0.3 s in 0-0.6 s per run
+    for run, printed in zip(runs, (lines[:2], lines[2:]), strict=True):
+        for r, ln in zip(split_window(run, (0.0, 0.6), 0.3), printed, strict=True):
+            assert math.isfinite(r["bed_flux_centre/rhoUf"]) and f"centre {r['bed_flux_centre/rhoUf']:+6.1f}" in ln
+    assert lines[2].split("centre")[1].split()[0] != lines[0].split("centre")[1].split()[0]  # twice the velocity
