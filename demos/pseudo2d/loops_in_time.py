@@ -1,13 +1,13 @@
 """The loops of pseudo-2D runs over consecutive windows, on one figure: when does each bed settle, and how far apart?
 
-    python demos/pseudo2d/loops_in_time.py RUN_DIR [RUN_DIR ...] [--labels A B ...] [--from T0] [--split DT]
-        [-o FIGURE.png]
+    python demos/pseudo2d/loops_in_time.py RUN_DIR [RUN_DIR ...] [--labels A B ...] [--from T0 [T0 ...]]
+        [--split DT] [-o FIGURE.png]
 
 For each run folder, the bed-averaged vertical solid flux of the central third and of the outer 15 % over
-consecutive windows of DT s (default 1 s) from T0 to the end of its output (`febed.post.windows`, what
-`febed post RUN_DIR --window T0 T1 --split DT` gives), drawn against time, one colour per run; also the
-bubble fraction. Prints each run's windows. Runs continued from another run's checkpoint in a new folder
-hold only their own times.
+consecutive windows of DT s (default 1 s) from T0 (one for every run, or one per run) to the end of its
+output (`febed.post.windows`, what `febed post RUN_DIR --window T0 T1 --split DT` gives), drawn against time,
+one colour per run; also the bubble fraction. Prints each run's windows. A run continued from another run's
+checkpoint in a copy of its folder holds the other run's times too: give it its own T0.
 """
 
 from __future__ import annotations
@@ -23,22 +23,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path, metavar="RUN_DIR")
     ap.add_argument("--labels", nargs="+", help="one name per run (default the folder names)")
-    ap.add_argument("--from", dest="t0", type=float, default=1.0, help="first window's start [s] (default 1)")
+    ap.add_argument("--from", dest="t0", type=float, nargs="+", default=[1.0],
+                    help="first window's start [s]: one for every run or one per run (default 1)")  # fmt: skip
     ap.add_argument("--split", type=float, default=1.0, help="window length [s] (default 1)")
     ap.add_argument("-o", "--output", type=Path, default=Path("loops_in_time.png"), help="the figure (PNG)")
     args = ap.parse_args()
     labels = args.labels or [r.name for r in args.runs]
     if len(labels) != len(args.runs):
         ap.error(f"{len(labels)} label(s) for {len(args.runs)} run folder(s)")
+    starts = args.t0 * len(args.runs) if len(args.t0) == 1 else args.t0
+    if len(starts) != len(args.runs):
+        ap.error(f"--from: {len(args.t0)} start(s) for {len(args.runs)} run folder(s)")
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, 1, figsize=(8.0, 5.6), sharex=True)
-    for k, (run, label) in enumerate(zip(args.runs, labels, strict=True)):
+    for k, (run, label, start) in enumerate(zip(args.runs, labels, starts, strict=True)):
         snaps = list_snapshots(run)
-        t0 = max(args.t0, snaps[0][0])
+        t0 = max(start, snaps[0][0])
         rows = split_window(run, (t0, snaps[-1][0]), args.split)
         print(f"{label}:")
         for r in rows:
