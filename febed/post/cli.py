@@ -20,7 +20,7 @@ from pathlib import Path
 from febed.post.collect import compare_runs
 from febed.post.grid import BUBBLE_ALPHA
 from febed.post.report import post_run
-from febed.post.windows import split_window, spread, write_windows
+from febed.post.windows import check_width, split_window, spread, window_edges, write_windows
 from febed.study import collect, job_lines, load_study, member_states, resume_flags, run_study
 
 
@@ -85,6 +85,10 @@ def cmd_post(args) -> int:
     run_dir = Path(args.run_dir)
     if not run_dir.is_dir():
         raise ValueError(f"RUN_DIR {run_dir} is not a folder")
+    if args.split is not None and args.window:  # a bad --split fails before the averaging, not after it
+        window_edges(*args.window, args.split)
+    elif args.split is not None:
+        check_width(args.split)
     res = post_run(
         run_dir,
         window=tuple(args.window) if args.window else None,

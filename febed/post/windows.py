@@ -27,10 +27,15 @@ COLUMNS = (
 )  # fmt: skip
 
 
-def window_edges(t0: float, t1: float, width: float) -> list[tuple[float, float]]:
-    """Consecutive windows (a, b) of `width` s from t0, the whole ones inside [t0, t1]."""
+def check_width(width: float) -> None:
+    """Raise ValueError unless `width` (s) is a finite number > 0."""
     if not (math.isfinite(width) and width > 0.0):
         raise ValueError(f"split: the window length must be a number > 0 s, got {width}")
+
+
+def window_edges(t0: float, t1: float, width: float) -> list[tuple[float, float]]:
+    """Consecutive windows (a, b) of `width` s from t0, the whole ones inside [t0, t1]."""
+    check_width(width)
     n = math.floor((t1 - t0) / width * (1.0 + 1e-9))
     if n < 1:
         raise ValueError(f"split: {width:g} s is longer than the averaging window {t0:g}..{t1:g} s")
