@@ -90,7 +90,7 @@ def test_c1_bubbles_and_is_two_dimensional(c1):
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="febed's C1 (coarse mesh, default numerics) circulates the other way in its start-up, the first 3-5 s: "
+    reason="febed's C1 (coarse mesh, default numerics) circulates the other way in its start-up, the first 3-8 s: "
     "bed-averaged vertical solid flux over 1-5 s -31 / +17 rho U_f (centre / walls) in one run, -8 / -6 in "
     "another; seed 001's way after it (test_c1_after_its_start_up_circulates_up_the_centre_down_the_walls); "
     "docs/examples/pseudo2d.md",
