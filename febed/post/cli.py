@@ -136,7 +136,10 @@ def _post_windows(run_dir: Path, args, window: tuple[float, float]) -> list[Path
         run_dir, window, args.split, bins=tuple(args.bins) if args.bins else None, kernel=args.kernel,
         agitation=args.agitation, bubble_alpha=args.bubble_alpha,
     )  # fmt: skip
-    print(f"  {len(rows)} windows of {args.split:g} s from {window[0]:g} s (mean, standard deviation, range):")
+    print(
+        f"  {len(rows)} windows of {args.split:g} s from {window[0]:g} s (mean +- standard deviation, range;"
+        " standard error of the whole window's mean, lag-1 correlation of the windows):"
+    )
     for key, name, fmt in (
         ("bed_flux_centre/rhoUf", "bed solid flux / rho U_f, central third", "+.1f"),
         ("bed_flux_walls/rhoUf", "bed solid flux / rho U_f, outer 15 %", "+.1f"),
@@ -144,7 +147,10 @@ def _post_windows(run_dir: Path, args, window: tuple[float, float]) -> list[Path
         ("bubble_fraction", "bubble fraction", ".3f"),
     ):
         s = spread(rows, key)
-        print(f"    {name}: {s['mean']:{fmt}} +- {s['std']:.3g} ({s['min']:{fmt}} to {s['max']:{fmt}})")
+        print(
+            f"    {name}: {s['mean']:{fmt}} +- {s['std']:.3g} ({s['min']:{fmt}} to {s['max']:{fmt}});"
+            f" standard error {s['sem']:.2g}, r1 {s['r1']:+.2f}"
+        )
     out = Path(args.output) if args.output else run_dir / "post"
     title = f"{run_dir.name}: means over windows of {args.split:g} s"
     return write_windows(rows, out, figures=not args.no_figures, title=title)

@@ -52,13 +52,37 @@ def split_window(run_dir, window: tuple[float, float], width: float, **options) 
 
 
 def spread(rows: list[dict], key: str) -> dict[str, float]:
-    """Mean, standard deviation (n − 1), minimum and maximum of `key` over the rows where it is finite."""
+    """Mean, spread and the whole window's standard error of `key` over the rows where it is finite.
+
+    Returns n, mean, std (n − 1), min, max, r1 and sem:
+
+    * r1, the lag-1 autocorrelation of the windows' means, Σ d_k d_(k+1) / Σ d_k² with d = v − mean
+      (NaN below 3 windows);
+    * sem, the standard error of the mean over all the windows, std / √n_eff, with the effective number of
+      independent windows n_eff = n (1 − r1) / (1 + r1) of a first-order autoregressive series
+      (Bretherton et al. 1999, J. Climate 12:1990, eq. 31). r1 is taken as 0 when it is negative or undefined,
+      so that correlated windows widen the error and anti-correlated ones never narrow it.
+
+    Two runs' means differ beyond their sampling when the difference exceeds about 2 √(sem_1² + sem_2²).
+    """
     v = np.array([r[key] for r in rows], dtype=float)
     v = v[np.isfinite(v)]
+    out = {"n": int(v.size), "mean": math.nan, "std": math.nan, "min": math.nan, "max": math.nan}
+    out.update(r1=math.nan, sem=math.nan)
     if v.size == 0:
-        return {"n": 0, "mean": math.nan, "std": math.nan, "min": math.nan, "max": math.nan}
-    std = float(v.std(ddof=1)) if v.size > 1 else math.nan
-    return {"n": int(v.size), "mean": float(v.mean()), "std": std, "min": float(v.min()), "max": float(v.max())}
+        return out
+    out.update(mean=float(v.mean()), min=float(v.min()), max=float(v.max()))
+    if v.size < 2:
+        return out
+    out["std"] = float(v.std(ddof=1))
+    d = v - v.mean()
+    ss = float(d @ d)
+    if v.size >= 3 and ss > 0.0:
+        out["r1"] = float(d[:-1] @ d[1:]) / ss
+    r1 = out["r1"] if math.isfinite(out["r1"]) and out["r1"] > 0.0 else 0.0
+    n_eff = v.size * (1.0 - r1) / (1.0 + r1)
+    out["sem"] = out["std"] / math.sqrt(n_eff) if n_eff > 0.0 else math.inf
+    return out
 
 
 def write_windows(rows: list[dict], out: str | Path, figures: bool = True, title: str = "") -> list[Path]:

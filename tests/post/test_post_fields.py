@@ -530,11 +530,35 @@ def test_means_over_consecutive_windows(tmp_path, capsys):
     assert main([*argv, "-o", str(tmp_path / "o")]) == 0
     out = capsys.readouterr().out
     assert "2 windows of 0.4 s from 0 s" in out and "windows.csv" in out and "windows.png" in out
+    assert "standard error" in out
     table = np.genfromtxt(tmp_path / "o" / "windows.csv", delimiter=",", names=True)
     assert table.size == 2 and np.allclose(table["bed_flux_centrerhoUf"], [c, -0.6 * c], rtol=1e-5)
     for bad, what in (("0", "must be a number > 0"), ("-1", "must be a number > 0"), ("1.0", "longer than")):
         assert main([str(run), "--window", "0", "0.8", "--split", bad, "--no-figures", "-o", str(tmp_path / "b")]) == 2
         assert what in capsys.readouterr().err, bad
+
+
+def test_window_spread_standard_error_widens_for_correlated_windows():
+    """`spread`'s standard error: std/√n for uncorrelated windows, std/√n_eff (AR(1)) for correlated ones."""
+    from febed.post.windows import spread
+
+    def rows(values):
+        return [{"x": v} for v in values]
+
+    # a ramp 1, 2, 3, 4: d = (-1.5, -0.5, 0.5, 1.5), r1 = (0.75 - 0.25 + 0.75) / 5 = 0.25, n_eff = 4 (0.75/1.25) = 2.4
+    s = spread(rows([1.0, 2.0, 3.0, 4.0]), "x")
+    assert s["r1"] == pytest.approx(0.25, rel=1e-14)
+    assert s["sem"] == pytest.approx(math.sqrt(5.0 / 3.0) / math.sqrt(2.4), rel=1e-14)
+    # alternating windows are anti-correlated (r1 = -0.75): they never narrow the error below std/√n
+    s = spread(rows([1.0, -1.0, 1.0, -1.0]), "x")
+    assert s["r1"] == pytest.approx(-0.75, rel=1e-14)
+    assert s["sem"] == pytest.approx(s["std"] / 2.0, rel=1e-14)
+    # two windows: no correlation to estimate, std/√2; NaN windows are left out; one window: no spread at all
+    s = spread(rows([3.0, math.nan, 5.0]), "x")
+    assert s["n"] == 2 and math.isnan(s["r1"]) and s["sem"] == pytest.approx(math.sqrt(2.0) / math.sqrt(2.0))
+    s = spread(rows([3.0]), "x")
+    assert s["mean"] == 3.0 and math.isnan(s["std"]) and math.isnan(s["sem"])
+    assert spread(rows([]), "x")["n"] == 0
 
 
 def test_loops_in_time_demo_draws_each_runs_windows(tmp_path, monkeypatch, capsys):
