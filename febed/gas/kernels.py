@@ -17,6 +17,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+# The row loops below may reorder their sums (LLVM's `reassoc`) and fuse multiply-adds (`contract`): about
+# twice as fast for the momentum right-hand side on a hex mesh (benchmarks/gas_step.py), with results that
+# change only at round-off and keep the IEEE NaN/Inf semantics. These kernels are called from Python only,
+# never from another compiled kernel, so every run executes the same machine code for them, compiled or from
+# the cache (the DEM's force loops, inlined into their integrators, cannot reassociate: febed/dem/contact.py).
+ROWS = {"reassoc", "contract"}
+
 
 def momentum_rhs(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, out):
     """Explicit momentum right-hand side per node [N]: −ρ∇·(q⊗u) − ∇p + ∇·(ν∇u) + Taylor-Galerkin term.
@@ -47,7 +54,7 @@ def momentum_rhs(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, 
 # streamline term ρ Δt/2 ∇·(ū ū·∇q), which cancels the anti-diffusion of the forward-Euler convection
 # step, both in edge form with edge-averaged coefficients. Written out per dimension (scalar accumulators
 # are ~5x faster in Numba than small-array loops).
-@njit(cache=True)
+@njit(cache=True, fastmath=ROWS)
 def _rhs3(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragma: no cover
     n = indptr.size - 1
     for i in range(n):
@@ -81,7 +88,7 @@ def _rhs3(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragm
         out[i, 2] = a2 - dv * qi2 - gradp[i, 2]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=ROWS)
 def _rhs2(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragma: no cover
     n = indptr.size - 1
     for i in range(n):
@@ -110,7 +117,7 @@ def _rhs2(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragm
         out[i, 1] = a1 - dv * qi1 - gradp[i, 1]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=ROWS)
 def divergence(indptr, indices, grad, q, out):  # pragma: no cover
     """Galerkin divergence per node, out_i = ∫ φ_i ∇·q_h dx [m^3/s in 3D]."""
     n = indptr.size - 1
@@ -125,7 +132,7 @@ def divergence(indptr, indices, grad, q, out):  # pragma: no cover
         out[i] = s
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=ROWS)
 def gradient(indptr, indices, grad, f, out):  # pragma: no cover
     """Galerkin gradient per node, out_i = ∫ φ_i ∇f_h dx (divide by ∫φ_i for the lumped L2 projection)."""
     n = indptr.size - 1
@@ -146,7 +153,7 @@ def gradient(indptr, indices, grad, f, out):  # pragma: no cover
             out[i, 2] = g2
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=ROWS)
 def strain_rate_norm(indptr, indices, grad, u, mass, out):  # pragma: no cover
     """Nodal |S| = sqrt(2 S:S) of the lumped L2-projected velocity gradient [1/s].
 
