@@ -60,7 +60,7 @@ def spread(rows: list[dict], key: str) -> dict[str, float]:
       (NaN below 3 windows);
     * sem, the standard error of the mean over all the windows, std / √n_eff, with the effective number of
       independent windows n_eff = n (1 − r1) / (1 + r1) of a first-order autoregressive series
-      (Bretherton et al. 1999, J. Climate 12:1990, eq. 31). r1 is taken as 0 when it is negative or undefined,
+      (Bretherton et al. 1999, J. Climate 12:1990-2009). r1 is taken as 0 when it is negative or undefined,
       so that correlated windows widen the error and anti-correlated ones never narrow it.
 
     Two runs' means differ beyond their sampling when the difference exceeds about 2 √(sem_1² + sem_2²).
