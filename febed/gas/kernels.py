@@ -19,9 +19,10 @@ from numba import njit
 
 # The row loops below may reorder their sums (LLVM's `reassoc`) and fuse multiply-adds (`contract`): the
 # predictor of benchmarks/gas_step.py's hex-mesh step, mostly the momentum sweep, takes 0.66-0.72 of the time
-# it took without, with results that change only at round-off and keep the IEEE NaN/Inf semantics. These kernels are called from Python only,
-# never from another compiled kernel, so every run executes the same machine code for them, compiled or from
-# the cache (the DEM's force loops, inlined into their integrators, cannot reassociate: febed/dem/contact.py).
+# it took without, with results that change only at round-off and keep the IEEE NaN/Inf semantics. These
+# kernels are called from Python only, never from another compiled kernel, so every run executes the same
+# machine code for them, compiled or from the cache (the DEM's force loops, inlined into their integrators,
+# cannot reassociate: febed/dem/contact.py).
 ROWS = {"reassoc", "contract"}
 
 
