@@ -20,7 +20,7 @@ from pathlib import Path
 from febed.post.collect import compare_runs
 from febed.post.grid import BUBBLE_ALPHA
 from febed.post.report import post_run
-from febed.post.windows import check_width, split_window, spread, window_edges, write_windows
+from febed.post.windows import check_width, split_window, spread, standard_errors, window_edges, write_windows
 from febed.study import collect, job_lines, load_study, member_states, resume_flags, run_study
 
 
@@ -217,6 +217,12 @@ def add_compare_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--height", type=float, default=0.092, metavar="Z/H", help="profile height z/H (0.092)")
     p.add_argument("--no-fields", action="store_true", help="probe series only (no particle averages)")
+    p.add_argument(
+        "--split",
+        type=float,
+        metavar="DT",
+        help="also the standard error of each run's means, from its consecutive windows of DT s (columns KEY_se)",
+    )
     p.add_argument("-o", "--output", default="comparison", help="output folder (default ./comparison)")
     return p
 
@@ -227,6 +233,15 @@ def cmd_compare(args) -> int:
 
     if MPI.COMM_WORLD.rank != 0:
         return 0
+    extra = None
+    if args.split is not None:  # each run's standard errors from its windows of DT s
+        check_width(args.split)
+        if args.no_fields:
+            raise ValueError("split: the standard errors need the particle averages; leave out --no-fields")
+
+        def extra(run_dir, window):
+            return standard_errors(run_dir, window, args.split)
+
     table = compare_runs(
         args.run_dirs,
         labels=args.labels,
@@ -234,6 +249,7 @@ def cmd_compare(args) -> int:
         fields=not args.no_fields,
         height=args.height,
         out=args.output,
+        extra=extra,
     )
     print(f"{'run':24s} {'window [s]':>13s} {'dp/W':>6s} {'bed [mm]':>8s} {'centre':>7s} {'walls':>7s} {'bubbles':>7s}")
     for r in table.rows:
@@ -242,6 +258,12 @@ def cmd_compare(args) -> int:
             f"{1e3 * r['bed_height_mean']:8.1f} {r['bed_flux_centre/rhoUf']:+7.1f} {r['bed_flux_walls/rhoUf']:+7.1f} "
             f"{r['bubble_fraction']:7.3f}"
         )
+        if args.split is not None:
+            print(
+                f"{'  standard error':24s} {'':13s} {r['dp_bed_over_weight_se']:6.3f} "
+                f"{1e3 * r['bed_height_mean_se']:8.1f} {r['bed_flux_centre/rhoUf_se']:7.1f} "
+                f"{r['bed_flux_walls/rhoUf_se']:7.1f} {r['bubble_fraction_se']:7.3f}"
+            )
     print(f"wrote {table.csv}")
     for f in table.figures:
         print(f"  wrote {f}")

@@ -272,13 +272,17 @@ def compare_members(study, states, fields: bool = True, height: float = 0.092, o
     return Comparison(rows=rows, csv=path, figures=figs, profiles=profiles)
 
 
-def compare_runs(directories, labels=None, windows=None, fields: bool = True, height: float = 0.092, out="comparison"):
+def compare_runs(
+    directories, labels=None, windows=None, fields: bool = True, height: float = 0.092, out="comparison", extra=None
+):
     """Compare run folders made independently (e.g. C1, C2, C3 of a mesh study run one by one): `febed compare`.
 
     One row per run, in the given order, with the numbers of `run_row` (`comparison.csv`), the flux profiles
     at z/H = `height` in long form (`profiles_flux.csv`: run, x/L, flux/ρU_f; the runs' bins may differ),
     and figures: each quantity against the runs (`comparison_runs.png`) and the profiles on one plot.
-    `windows`: None (the last half of each run), one (t0, t1) for all, or one per run.
+    `windows`: None (the last half of each run), one (t0, t1) for all, or one per run. `extra`: a function
+    (run_dir, (t0, t1)) -> dict whose items are added to each run's row, e.g. the standard errors of
+    `febed.post.windows.standard_errors` (`febed compare --split`).
     """
     directories = [Path(d) for d in directories]
     if not directories:
@@ -309,6 +313,8 @@ def compare_runs(directories, labels=None, windows=None, fields: bool = True, he
     rows, profiles = [], {}
     for d, label, w in zip(directories, labels, windows, strict=True):
         numbers, prof = run_row(d, w, fields, height)
+        if extra is not None:
+            numbers.update(extra(d, (numbers["window_t0"], numbers["window_t1"])))
         rows.append({"run": label, "directory": str(d), **numbers})
         if prof is not None:
             profiles[label] = prof

@@ -85,6 +85,22 @@ def spread(rows: list[dict], key: str) -> dict[str, float]:
     return out
 
 
+# the quantities `standard_errors` gives (as KEY_se): those `febed compare` prints for each run
+SE_KEYS = (
+    "dp_bed_over_weight", "bed_height_mean", "bed_flux_centre/rhoUf", "bed_flux_walls/rhoUf", "bubble_fraction",
+)  # fmt: skip
+
+
+def standard_errors(run_dir, window: tuple[float, float], width: float, **options) -> dict[str, float]:
+    """KEY_se for the `SE_KEYS`: the standard errors (`spread`) of the run's means over `window` (s).
+
+    From its consecutive windows of `width` s; `options` go to `run_row`. `febed compare --split` adds them to
+    its rows.
+    """
+    rows = split_window(run_dir, window, width, **options)
+    return {f"{key}_se": spread(rows, key)["sem"] for key in SE_KEYS}
+
+
 def write_windows(rows: list[dict], out: str | Path, figures: bool = True, title: str = "") -> list[Path]:
     """`windows.csv` (one row per window) and, with `figures`, `windows.png` in the folder `out`."""
     out = Path(out)

@@ -538,6 +538,45 @@ def test_means_over_consecutive_windows(tmp_path, capsys):
         assert what in capsys.readouterr().err, bad
 
 
+def test_compare_with_split_gives_each_runs_standard_errors(tmp_path, capsys):
+    """`febed compare --split DT`: each row's KEY_se is the standard error `spread` gives its windows of DT s."""
+    from febed.post import collect
+    from febed.post.cli import main
+    from febed.post.windows import SE_KEYS, split_window, spread, standard_errors
+
+    pos, bins, _ = lattice()
+    vel = np.array([bin_velocity(i, j) for i, j in bins])
+    runs = []
+    w_a = (RHO_P - RHO_G) * 9.81 * len(pos) * VP / (L * D)
+    for name, turn in (("a", 4), ("b", 2)):  # the loops reverse after snapshot `turn` (t = 0.1 turn s)
+        run = make_run(tmp_path / name, [(0.1 * k, pos, vel if k <= turn else -vel) for k in range(9)])
+        with open(run / "probes.csv", "w") as fh:
+            fh.write("time,particles,bed_height,dp_bed\n")
+            for tt in np.linspace(0, 0.8, 81):
+                fh.write(f"{tt!r},{len(pos)},0.15,{w_a * (1.0 + 0.1 * np.sin(20 * tt))!r}\n")
+        runs.append(run)
+
+    def extra(run_dir, window):
+        return standard_errors(run_dir, window, 0.2)
+
+    table = collect.compare_runs(runs, windows=[(0.0, 0.8)], out=tmp_path / "cmp", extra=extra)
+    for r, run in zip(table.rows, runs, strict=True):
+        parts = split_window(run, (0.0, 0.8), 0.2)
+        assert len(parts) == 4
+        for key in SE_KEYS:
+            assert r[f"{key}_se"] == pytest.approx(spread(parts, key)["sem"], rel=1e-12, nan_ok=True), key
+        assert r["bed_flux_centre/rhoUf_se"] > 0.0  # the loops reverse inside the window
+    header = (tmp_path / "cmp" / "comparison.csv").read_text().splitlines()[0]
+    assert "bed_flux_centre/rhoUf_se" in header
+    # the command line prints a standard-error line under each run; bad values are named
+    assert main(["compare", *map(str, runs), "--window", "0", "0.8", "--split", "0.2", "-o", str(tmp_path / "c")]) == 0
+    assert capsys.readouterr().out.count("standard error") == 2
+    bad = ((["--split", "0"], "must be a number > 0"), (["--split", "0.2", "--no-fields"], "particle averages"))
+    for extra, what in bad:
+        assert main(["compare", *map(str, runs), "--window", "0", "0.8", *extra, "-o", str(tmp_path / "x")]) == 2
+        assert what in capsys.readouterr().err, extra
+
+
 def test_window_spread_standard_error_widens_for_correlated_windows():
     """`spread`'s standard error: std/√n for uncorrelated windows, std/√n_eff (AR(1)) for correlated ones."""
     from febed.post.windows import spread
