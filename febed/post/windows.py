@@ -80,8 +80,8 @@ def spread(rows: list[dict], key: str) -> dict[str, float]:
     if v.size >= 3 and ss > 0.0:
         out["r1"] = float(d[:-1] @ d[1:]) / ss
     r1 = out["r1"] if math.isfinite(out["r1"]) and out["r1"] > 0.0 else 0.0
-    n_eff = v.size * (1.0 - r1) / (1.0 + r1)
-    out["sem"] = out["std"] / math.sqrt(n_eff) if n_eff > 0.0 else math.inf
+    n_eff = v.size * (1.0 - r1) / (1.0 + r1)  # > 0: r1 < 1 for any series that is not constant
+    out["sem"] = out["std"] / math.sqrt(n_eff)
     return out
 
 
