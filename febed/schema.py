@@ -398,6 +398,14 @@ SCHEMA: dict[str, dict[str, Param]] = {
     "coupling": {
         "drag": Param("gidaspow-blend", "-", "drag closure", str, choices=DRAG_LAWS),
         "pressure_gradient": Param(True, "-", "include the pressure-gradient force -V_p grad p (seed 001 eq 27)", bool),
+        "pressure_gradient_reaction": Param(
+            "projected",
+            "-",
+            "what the gas receives for the pressure-gradient force: projected (-sum w F_P, filtered, seed 001 eq 29)"
+            " or nodal ((1 - eps_i) grad p_i at each node, so the gas carries -eps grad p)",
+            str,
+            choices=("projected", "nodal"),
+        ),
         "filter_passes": Param(
             1, "-", "passes of the conservative neighbour filter (seed 001 eqs 31-34)", int, lo=0, hi=20
         ),
@@ -666,7 +674,7 @@ def check_fields(obj: Any) -> None:
 
 
 # ------------------------------------------------------------------------------ restarts and identity
-# The keys a restart may change: how a run is driven and written, not its physics or geometry
+# The keys a restart may change: how a run is driven, written and discretised, not its physics or geometry
 # (`febed.restart.case_changes`); every other key is part of what a checkpoint belongs to.
 CHANGEABLE = (
     "run.end_time",
@@ -687,6 +695,7 @@ CHANGEABLE = (
     "gas.pressure_rtol",
     "gas.mass_tolerance",
     "gas.backflow",
+    "coupling.pressure_gradient_reaction",
 )
 
 

@@ -508,15 +508,20 @@ class CoupledSolver:
         particles were given for the step (`fluid_state` at its start), so the gas is handed the same
         coefficients, −Σ_p ω_{p,i} K_p (u_i − v_p) implicitly and −Σ_p ω_{p,i} F_P,p / ΔV_i explicitly: with
         the drag, the gas receives minus every fluid force the particles receive (seed 001 eq 29). It also
-        saves a second interpolation pass per gas step.
+        saves a second interpolation pass per gas step. With `coupling.pressure_gradient_reaction = "nodal"`
+        the explicit force is instead (1 − ε_i)∇p_i from the gas's own nodal ∇p^n, so that the gas carries
+        −ε∇p node by node, consistent with the ε and K it is given (docs/theory.md, "Pressure-gradient force").
         """
         self.locate_particles()
         K, f_p = self._last_exchange()
         P = self.dem.particles
         d_orig, n_orig = self._originals()
-        x = self.coupler.project_to_gas(d_orig, n_orig, K, P.vel[: P.n_owned], F_explicit=f_p)
+        cp = self.case.coupling
+        nodal = cp.pressure_gradient and cp.pressure_gradient_reaction == "nodal"
+        x = self.coupler.project_to_gas(d_orig, n_orig, K, P.vel[: P.n_owned], F_explicit=None if nodal else f_p)
         self.alpha, self.clipped = x.alpha, x.clipped
-        return x.eps, x.K, np.ascontiguousarray(x.Kv), np.ascontiguousarray(x.F)
+        F = (1.0 - x.eps)[:, None] * self.gas.grad_p if nodal else x.F  # nodal: the gas's own ∇p^n, explicit
+        return x.eps, x.K, np.ascontiguousarray(x.Kv), np.ascontiguousarray(F)
 
 
 def build_solver(case, md, log) -> CoupledSolver:

@@ -44,21 +44,28 @@ def lattice(lo, hi, spacing):
     return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
 
 
-def test_momentum_exchange_is_newtons_third_law(tmp_path):
-    """What the particles receive from the gas, the gas gives: Σ_p K_p(u@p − v_p) = Σ_i ΔV_i K_i(u_i − v̄_i)."""
+def exchange_bed(tmp_path, coupling, **sections):
+    """729 beads of 1 mm in a 1 cm cube at the bottom of a 1 x 1 x 3 cm box, air at 0.3 m/s, after 5 gas steps."""
     case = box_case(
         tmp_path,
         (0.01, 0.01, 0.03),
         0.002,
         gas={"boundary": {"inlet": {"type": "inlet", "velocity": 0.3}}},
-        coupling={"filter_passes": 0, "drag": "gidaspow-blend"},
+        coupling={"filter_passes": 0, "drag": "gidaspow-blend", **coupling},
         contact={"stiffness": 10.0},
+        **sections,
     )
     rng = np.random.default_rng(1)
     pos = lattice((0, 0, 0), (0.01, 0.01, 0.01), 0.0011) + rng.uniform(-1e-5, 1e-5, (729, 3))
     s = coupled(case, tmp_path, pos, 1e-3, 2500.0)
     for _ in range(5):
-        s.step()  # a developed, non-uniform gas field and moving particles
+        s.step()  # a developed, non-uniform gas field
+    return s
+
+
+def test_momentum_exchange_is_newtons_third_law(tmp_path):
+    """What the particles receive from the gas, the gas gives: Σ_p K_p(u@p − v_p) = Σ_i ΔV_i K_i(u_i − v̄_i)."""
+    s = exchange_bed(tmp_path, {})  # the particles move
     K, f_drag, _ = s.fluid_state()
     v = s.dem.particles.vel[: s.dem.particles.n_owned]
     received = f_drag.sum(axis=0)  # F_D = K_p (u@p − v_p)
@@ -72,6 +79,22 @@ def test_momentum_exchange_is_newtons_third_law(tmp_path):
         _, K_i, Kv_i, _ = s.project()
         assert math.isclose((dV * K_i).sum(), K.sum(), rel_tol=1e-12)
         assert np.allclose((dV[:, None] * Kv_i).sum(axis=0), (K[:, None] * v).sum(axis=0), rtol=1e-11, atol=1e-18)
+
+
+@pytest.mark.mpi
+def test_nodal_pressure_gradient_reaction_is_the_nodes_solid_fraction_times_their_gradient(mpi_tmp_path):
+    """`pressure_gradient_reaction = "nodal"`: the gas receives (1 − ε_i)∇p_i at every local node (ghosts
+    included), from the ∇p the particles were given; without the filter its total is minus theirs, Σ_p F_P."""
+    comm = MPI.COMM_WORLD
+    s = exchange_bed(mpi_tmp_path, {"pressure_gradient_reaction": "nodal"}, particles={"fixed": True})
+    _, _, f_p = s.fluid_state()  # F_P = −V_p ∇p@p from the current gas
+    eps, _, _, F = s.project()
+    assert np.array_equal(F, (1.0 - eps)[:, None] * s.gas.grad_p)
+    n = s.ma.num_owned_dofs
+    given = comm.allreduce((s.ma.node_volume[:n, None] * F[:n]).sum(axis=0))
+    received = comm.allreduce(f_p.sum(axis=0))
+    assert received[2] > 1e-4  # ∇p points down through the bed: F_P lifts it
+    assert np.allclose(given, -received, rtol=1e-11, atol=1e-11 * np.abs(received).max())
 
 
 def test_particle_locations_are_current_exactly_when_the_rows_are_unchanged(tmp_path):
