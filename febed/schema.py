@@ -402,7 +402,8 @@ SCHEMA: dict[str, dict[str, Param]] = {
             "projected",
             "-",
             "what the gas receives for the pressure-gradient force: projected (-sum w F_P, filtered, seed 001 eq 29)"
-            " or nodal ((1 - eps_i) grad p_i at each node, so the gas carries -eps grad p)",
+            " or nodal ((1 - eps_i) grad p_i at each node, so the gas carries -eps grad p; the particles get grad p"
+            " averaged by the filter's transpose, so that the totals still balance)",
             str,
             choices=("projected", "nodal"),
         ),

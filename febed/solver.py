@@ -489,8 +489,23 @@ class CoupledSolver:
         n = P.n_owned
         d_orig, n_orig = self._originals()
         record = P.attach(FLUID, FLUID_COLUMNS)[:n]
-        u, eps, grad_p = gas.u, gas.eps, gas.grad_p
+        u, eps, grad_p = gas.u, gas.eps, self._particles_grad_p()
         return self.coupler.forces_into(u, eps, grad_p, P.vel[:n], d_orig, n_orig, record, P.mass[:n], drag)
+
+    def _nodal_reaction(self) -> bool:
+        """Whether the gas receives the pressure-gradient force as (1 − ε_i)∇p_i (`pressure_gradient_reaction`)."""
+        cp = self.case.coupling
+        return cp.pressure_gradient and cp.pressure_gradient_reaction == "nodal"
+
+    def _particles_grad_p(self) -> np.ndarray:
+        """The nodal ∇p the particles interpolate (collective).
+
+        The gas's, or with the nodal reaction its average by the void-fraction filter's transpose, so that the
+        gas's (1 − ε_i)∇p_i sums to minus their F_P exactly.
+        """
+        if self._nodal_reaction():
+            return self.coupler.filter_transpose(self.gas.grad_p)
+        return self.gas.grad_p
 
     def _last_exchange(self):
         """K_p and F_P (views) the particles were given for this step, in the current row order (fresh if missing)."""
@@ -510,14 +525,15 @@ class CoupledSolver:
         the drag, the gas receives minus every fluid force the particles receive (seed 001 eq 29). It also
         saves a second interpolation pass per gas step. With `coupling.pressure_gradient_reaction = "nodal"`
         the explicit force is instead (1 − ε_i)∇p_i from the gas's own nodal ∇p^n, so that the gas carries
-        −ε∇p node by node, consistent with the ε and K it is given (docs/theory.md, "Pressure-gradient force").
+        −ε∇p node by node, consistent with the ε and K it is given, while the particles interpolate ∇p^n
+        averaged by the filter's transpose (`_particles_grad_p`): the totals agree to round-off for particles
+        at rest (docs/theory.md, "Pressure-gradient force").
         """
         self.locate_particles()
         K, f_p = self._last_exchange()
         P = self.dem.particles
         d_orig, n_orig = self._originals()
-        cp = self.case.coupling
-        nodal = cp.pressure_gradient and cp.pressure_gradient_reaction == "nodal"
+        nodal = self._nodal_reaction()
         x = self.coupler.project_to_gas(d_orig, n_orig, K, P.vel[: P.n_owned], F_explicit=None if nodal else f_p)
         self.alpha, self.clipped = x.alpha, x.clipped
         F = (1.0 - x.eps)[:, None] * self.gas.grad_p if nodal else x.F  # nodal: the gas's own ∇p^n, explicit

@@ -224,6 +224,26 @@ class Coupler:
             clipped = ma.comm.allreduce(clipped)
         return NodalExchange(alpha, eps, int(clipped), Ki, Kv, Fi)
 
+    def filter_transpose(self, nodal: np.ndarray) -> np.ndarray:
+        """A nodal field (nd, k) averaged `filter_passes` times by the transpose of the neighbour filter (a new array).
+
+        The filter moves the particles' extensive sums A by T (`filter_kernel`); its transpose is the node → cell
+        → node average Φ̂_j = Σ_{K∋j} (S_Kj/ΔV_j) Σ_{i∈K} (S_Ki/|K|) Φ_i, the same kernel with gather and scatter
+        swapped. A field Φ the particles interpolate after Tᵀ gives them in total what the filtered sums give the
+        gas against Φ itself: Σ_i (T A)_i Φ_i = Σ_j A_j (Tᵀ Φ)_j (collective; owned and ghost rows are set).
+        """
+        cur = np.array(nodal, dtype=np.float64, order="C")
+        if self.filter_passes == 0:
+            return cur
+        ma = self.gas_ma
+        gather, scatter = ma.filter_weights()
+        nxt = np.empty_like(cur)
+        for _ in range(self.filter_passes):
+            filter_kernel(ma.cell_dofs, ma.num_owned_cells, scatter, gather, cur, nxt)
+            ma.accumulate(nxt)
+            cur, nxt = nxt, cur
+        return cur
+
     def _deposit(self, cell, d3, n_orig, K, v, F, g, out) -> None:
         """Project the particles' [V_p, K_p, K_p v_p, -F_p] onto `out` (nd, cols), summed over ranks (collective)."""
         exchange_project_kernel(self.ma.cell_dofs, cell, self.w, d3, n_orig, K, v, F, g, out)
