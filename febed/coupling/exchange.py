@@ -38,7 +38,12 @@ from febed.coupling.drag import (
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import FOUND, locate
 from febed.coupling.mesh_arrays import NUM_VERTICES, MeshArrays
-from febed.coupling.projection import exchange_finish_kernel, exchange_project_kernel, filter_kernel
+from febed.coupling.projection import (
+    exchange_finish_kernel,
+    exchange_project_kernel,
+    filter_kernel,
+    neighbour_filter_transpose,
+)
 
 
 @dataclass
@@ -225,24 +230,12 @@ class Coupler:
         return NodalExchange(alpha, eps, int(clipped), Ki, Kv, Fi)
 
     def filter_transpose(self, nodal: np.ndarray) -> np.ndarray:
-        """A nodal field (nd, k) averaged `filter_passes` times by the transpose of the neighbour filter (a new array).
+        """A nodal field (nd, k) averaged `filter_passes` times by the void-fraction filter's transpose (collective).
 
-        The filter moves the particles' extensive sums A by T (`filter_kernel`); its transpose is the node → cell
-        → node average Φ̂_j = Σ_{K∋j} (S_Kj/ΔV_j) Σ_{i∈K} (S_Ki/|K|) Φ_i, the same kernel with gather and scatter
-        swapped. A field Φ the particles interpolate after Tᵀ gives them in total what the filtered sums give the
-        gas against Φ itself: Σ_i (T A)_i Φ_i = Σ_j A_j (Tᵀ Φ)_j (collective; owned and ghost rows are set).
+        Interpolated at the particles, it gives them in total what the filtered nodal sums give the gas against
+        the field itself (`neighbour_filter_transpose`); the nodal pressure-gradient reaction relies on it.
         """
-        cur = np.array(nodal, dtype=np.float64, order="C")
-        if self.filter_passes == 0:
-            return cur
-        ma = self.gas_ma
-        gather, scatter = ma.filter_weights()
-        nxt = np.empty_like(cur)
-        for _ in range(self.filter_passes):
-            filter_kernel(ma.cell_dofs, ma.num_owned_cells, scatter, gather, cur, nxt)
-            ma.accumulate(nxt)
-            cur, nxt = nxt, cur
-        return cur
+        return neighbour_filter_transpose(self.gas_ma, nodal, self.filter_passes)
 
     def _deposit(self, cell, d3, n_orig, K, v, F, g, out) -> None:
         """Project the particles' [V_p, K_p, K_p v_p, -F_p] onto `out` (nd, cols), summed over ranks (collective)."""

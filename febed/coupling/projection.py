@@ -195,6 +195,28 @@ def neighbour_filter(ma: MeshArrays, extensive: np.ndarray, passes: int = 1) -> 
     return cur.reshape(extensive.shape)
 
 
+def neighbour_filter_transpose(ma: MeshArrays, nodal: np.ndarray, passes: int = 1) -> np.ndarray:
+    """Apply `passes` passes of the neighbour filter's transpose to an intensive nodal field (new array; collective).
+
+    The transpose of `neighbour_filter` is the node → cell → node average of seed 001 eq 31,
+    Φ̂_j = Σ_{K∋j} (S_Kj/ΔV_j) Σ_{i∈K} (S_Ki/|K|) Φ_i: the same kernel with gather and scatter swapped, equal to
+    T(ΦΔV)/ΔV (T = B/ΔV with B symmetric). It keeps constants, and for extensive sums A,
+    Σ_i (T A)_i Φ_i = Σ_j A_j (Tᵀ Φ)_j over owned dofs: a field the particles interpolate after Tᵀ gives them in
+    total what the filtered sums give the gas against Φ itself. `nodal` is (nd,) or (nd, k), consistent on ghost
+    dofs; owned and ghost rows of the result are set.
+    """
+    if not isinstance(passes, int | np.integer) or passes < 0:
+        raise ValueError(f"passes: must be an integer >= 0, got {passes!r}")
+    cur = _as2d(nodal, ma.num_dofs, "nodal").astype(np.float64, order="C")
+    gather, scatter = ma.filter_weights()
+    for _ in range(passes):
+        out = np.empty_like(cur)
+        filter_kernel(ma.cell_dofs, ma.num_owned_cells, scatter, gather, cur, out)
+        ma.accumulate(out)
+        cur = out
+    return cur.reshape(np.shape(nodal))
+
+
 def solid_fraction(ma: MeshArrays, nodal_volume: np.ndarray, floor: float = 0.0):
     """Solid fraction α_i = V̂_i/ΔV_i and void fraction ε_i = max(1 - α_i, floor) at the nodes (seed 001 eq 30).
 

@@ -6,14 +6,20 @@ import dolfinx.la
 import numpy as np
 import pytest
 import ufl
-from _coupling_meshes import mesh_and_arrays, random_points
+from _coupling_meshes import ALL_MESHES, mesh_and_arrays, random_points
 from dolfinx import fem
 from dolfinx import mesh as dmesh
 
 from febed.coupling.interpolate import interpolate
 from febed.coupling.locate import locate
 from febed.coupling.mesh_arrays import extract_mesh_arrays
-from febed.coupling.projection import neighbour_filter, per_volume, project, solid_fraction
+from febed.coupling.projection import (
+    neighbour_filter,
+    neighbour_filter_transpose,
+    per_volume,
+    project,
+    solid_fraction,
+)
 from febed.coupling.weights import compute_weights
 
 
@@ -30,6 +36,31 @@ def _gsum(comm, a):
     out = np.zeros_like(np.atleast_1d(np.asarray(a, dtype=float)))
     comm.Allreduce(np.atleast_1d(np.asarray(a, dtype=float)), out, op=MPI.SUM)
     return out
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("name", ALL_MESHES)
+@pytest.mark.parametrize("passes", [0, 1, 2])
+def test_the_filters_transpose_is_its_adjoint_and_keeps_constants(name, passes):
+    """Σ_i (T A)_i Φ_i = Σ_j A_j (Tᵀ Φ)_j over owned dofs for random sums A and fields Φ (k = 3 columns), and
+    Tᵀ keeps a constant field: what the nodal pressure-gradient reaction's exact balance rests on."""
+    _, ma = mesh_and_arrays(name)
+    nd = ma.num_dofs
+    rng = np.random.default_rng(11)
+    _, cell, w, _ = _my_particles(ma, 500, seed=3)
+    A = project(ma, cell, w, rng.uniform(0.5, 1.5, (500, 3)))  # extensive sums, consistent on ghosts
+    x = ma.x_dofs[:, :3]
+    phi = np.cos(np.array([40.0, 70.0, 110.0]) * x + x[:, ::-1])  # a smooth field, the same on every rank
+    lhs = ma.owned_sum(neighbour_filter(ma, A, passes) * phi)
+    rhs = ma.owned_sum(A * neighbour_filter_transpose(ma, phi, passes))
+    assert np.max(np.abs(lhs - rhs)) < 1e-12 * np.max(np.abs(lhs)), (lhs, rhs)
+    vol = ma.node_volume[:, None]  # Tᵀ is the filter's intensive form (seed 001 eq 31): T(Φ ΔV)/ΔV
+    assert np.allclose(neighbour_filter_transpose(ma, phi, passes), neighbour_filter(ma, phi * vol, passes) / vol,
+                       rtol=0, atol=1e-12)  # fmt: skip
+    ones = neighbour_filter_transpose(ma, np.full((nd, 2), 2.5), passes)
+    assert np.max(np.abs(ones - 2.5)) < 1e-13
+    if passes:  # it averages: a non-constant field changes
+        assert ma.comm.allreduce(np.max(np.abs(neighbour_filter_transpose(ma, phi, passes) - phi)), op=MPI.MAX) > 1e-3
 
 
 @pytest.mark.mpi
