@@ -184,15 +184,23 @@ def neighbour_filter(ma: MeshArrays, extensive: np.ndarray, passes: int = 1) -> 
     `extensive` is (nd,) or (nd, k), consistent on ghost dofs (as returned by `project`); Σ over owned dofs is
     conserved to round-off on any mesh and any partition (seed 001 eq 34).
     """
+    gather, scatter = ma.filter_weights()
+    return _filter_passes(ma, _as2d(extensive, ma.num_dofs, "extensive"), passes, gather, scatter).reshape(
+        extensive.shape
+    )
+
+
+def _filter_passes(ma: MeshArrays, cur: np.ndarray, passes: int, gather: np.ndarray, scatter: np.ndarray):
+    """`passes` passes of `filter_kernel` with the given (gather, scatter) weights on (nd, k) rows (a new array)."""
     if not isinstance(passes, int | np.integer) or passes < 0:
         raise ValueError(f"passes: must be an integer >= 0, got {passes!r}")
-    cur = _as2d(extensive, ma.num_dofs, "extensive").copy()
+    cur = np.array(cur, dtype=np.float64, order="C")
     for _ in range(passes):
         out = np.empty_like(cur)
-        filter_kernel(ma.cell_dofs, ma.num_owned_cells, *ma.filter_weights(), cur, out)
+        filter_kernel(ma.cell_dofs, ma.num_owned_cells, gather, scatter, cur, out)
         ma.accumulate(out)
         cur = out
-    return cur.reshape(extensive.shape)
+    return cur
 
 
 def neighbour_filter_transpose(ma: MeshArrays, nodal: np.ndarray, passes: int = 1) -> np.ndarray:
@@ -205,16 +213,8 @@ def neighbour_filter_transpose(ma: MeshArrays, nodal: np.ndarray, passes: int = 
     total what the filtered sums give the gas against Φ itself. `nodal` is (nd,) or (nd, k), consistent on ghost
     dofs; owned and ghost rows of the result are set.
     """
-    if not isinstance(passes, int | np.integer) or passes < 0:
-        raise ValueError(f"passes: must be an integer >= 0, got {passes!r}")
-    cur = _as2d(nodal, ma.num_dofs, "nodal").astype(np.float64, order="C")
     gather, scatter = ma.filter_weights()
-    for _ in range(passes):
-        out = np.empty_like(cur)
-        filter_kernel(ma.cell_dofs, ma.num_owned_cells, scatter, gather, cur, out)
-        ma.accumulate(out)
-        cur = out
-    return cur.reshape(np.shape(nodal))
+    return _filter_passes(ma, _as2d(nodal, ma.num_dofs, "nodal"), passes, scatter, gather).reshape(np.shape(nodal))
 
 
 def solid_fraction(ma: MeshArrays, nodal_volume: np.ndarray, floor: float = 0.0):
