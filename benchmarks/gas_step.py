@@ -9,6 +9,11 @@ PETSC_OPTIONS="-febed_pressure_ksp_type preonly -febed_pressure_pc_type cholesky
 Prints ms per step and the breakdown by sub-step (rank 0's timers,
 max over ranks of the total). The ε field mimics a bubbling bed: ε ≈ 0.42 below 0.1 m with two bubbles rising
 at 0.5 m/s, 1 above, smoothed; K from Ergun/Wen-Yu-like magnitudes with K·v̄ of random particle velocities.
+
+`--solver-counts FILE.json` records, per rank and gas step, what the pressure solver exchanges (PETSc's own
+counts of messages, bytes and reductions in its solves and preconditioner set-ups) for the load model of
+`scaling_projection.py`; these are counts, not times, so any rank count can be run oversubscribed:
+`mpirun -n 16 --oversubscribe python benchmarks/gas_step.py --warmup 10 --steps 5 --solver-counts F.json`.
 """
 
 import os
@@ -17,6 +22,7 @@ import tempfile
 import time
 
 from mpi4py import MPI
+from petsc4py import PETSc
 
 import numpy as np
 
@@ -24,6 +30,46 @@ from febed.gas import BoundarySpec, VANSParameters, VANSSolver
 from febed.meshing import build_msh, load_msh
 
 comm = MPI.COMM_WORLD
+# The pressure solver's PETSc events: its solves and its preconditioner set-ups (febed calls KSPSetUp itself,
+# so the two do not nest). PETSc counts each message at both ends (numMessages, messageLength): halved below.
+SOLVER_EVENTS = ("KSPSolve", "PCSetUp")
+
+
+def solver_counts() -> np.ndarray:
+    """This rank's PETSc totals so far for the pressure solver: flops, messages sent, bytes sent, reductions."""
+    total = np.zeros(4)
+    for name in SOLVER_EVENTS:
+        info = PETSc.Log.Event(name).getPerfInfo()
+        total += (info["flops"], info["numMessages"] / 2, info["messageLength"] / 2, info["numReductions"])
+    return total
+
+
+def write_solver_counts(path: str, level: str, counts: np.ndarray, steps: int, nodes: int) -> None:
+    """Gather every rank's solver counts per gas step and add them to the JSON file `path` under (level, P)."""
+    rows = comm.gather(counts / steps, root=0)
+    if comm.rank != 0:
+        return
+    import json
+
+    data = json.load(open(path)) if os.path.exists(path) else {}
+    a = np.array(rows)
+    data.setdefault(level, {})[str(comm.size)] = {
+        "nodes": nodes,
+        "steps": steps,
+        "flops": a[:, 0].tolist(),
+        "messages": a[:, 1].tolist(),
+        "bytes": a[:, 2].tolist(),
+        "reductions": a[:, 3].tolist(),
+    }
+    tmp = f"{path}.tmp"
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)
+    print(
+        f"pressure solver per gas step, max over {comm.size} rank(s): {a[:, 1].max():.0f} messages, "
+        f"{a[:, 2].max() / 1e3:.1f} kB, {a[:, 3].max():.0f} reductions; "
+        f"flops max/mean {a[:, 0].max() / a[:, 0].mean():.3f}"
+    )
 
 
 def machine():
@@ -48,7 +94,11 @@ def bed_eps(x, t=0.0, vertical=2):
     return np.minimum(eps, 1.0)
 
 
-def main(warmup=100, steps=20, mass_tolerance=1e-6, level="intermediate", drag_weighted=True, mesh="pseudo2d"):
+def main(
+    warmup=100, steps=20, mass_tolerance=1e-6, level="intermediate", drag_weighted=True, mesh="pseudo2d", counts=None
+):
+    if counts:
+        PETSc.Log.begin()
     path = None
     if mesh == "wang2d":
         level = "default"
@@ -94,6 +144,7 @@ def main(warmup=100, steps=20, mass_tolerance=1e-6, level="intermediate", drag_w
             t_start = time.perf_counter()
             c_start = time.process_time()
             acc = {}
+            counts0 = solver_counts()
         dt = s.compute_dt()
         e = bed_eps(s.x, s.t + dt, vertical)
         info = s.step(dt, eps=e, K=K, Kv=K[:, None] * vbar)
@@ -104,6 +155,8 @@ def main(warmup=100, steps=20, mass_tolerance=1e-6, level="intermediate", drag_w
     total = comm.allreduce(time.perf_counter() - t_start, op=MPI.MAX) / steps
     cpu = comm.allreduce(time.process_time() - c_start, op=MPI.MAX) / steps
     nodes = comm.allreduce(s.n_owned)
+    if counts:
+        write_solver_counts(counts, level if mesh == "pseudo2d" else mesh, solver_counts() - counts0, steps, nodes)
     if comm.rank == 0:
         print(machine())
         projection = "drag-weighted" if drag_weighted else "constant-Laplacian"
@@ -146,5 +199,11 @@ if __name__ == "__main__":
         default=1,
         help="gas.drag_weighted_projection (default 1, febed's default; 0: the constant Laplacian)",
     )
+    ap.add_argument(
+        "--solver-counts",
+        metavar="FILE.json",
+        help="add the pressure solver's PETSc counts per gas step and rank (messages, bytes, reductions, flops) "
+        "to this file, under the mesh level and the rank count (scaling_projection.py reads them)",
+    )
     a = ap.parse_args()
-    main(a.warmup, a.steps, a.mass_tolerance, a.level, bool(a.drag_weighted), a.mesh)
+    main(a.warmup, a.steps, a.mass_tolerance, a.level, bool(a.drag_weighted), a.mesh, a.solver_counts)

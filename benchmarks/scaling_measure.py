@@ -53,6 +53,7 @@ import argparse
 import cProfile
 import json
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -74,6 +75,8 @@ from febed.parallel.partition import cell_owners
 from febed.runs.coupled import CoupledRun
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from gas_step import solver_counts  # noqa: E402
 
 
 class _CpuClock:
@@ -321,6 +324,7 @@ def main() -> None:
     comm.barrier()
     before = s.timers.as_dict()
     ksp0 = _ksp_seconds()
+    solver0 = solver_counts()
     waits0 = dict(waits) if waits else None
     steps0, builds0, dem0 = s.steps, s.dem.pairs.builds, s.dem.steps
     start = loads(s)
@@ -343,6 +347,7 @@ def main() -> None:
     comm.barrier()
     after = s.timers.as_dict()
     ksp1 = _ksp_seconds()
+    solver1 = solver_counts()
     mine = {
         "rank": comm.rank,
         "t0": sim0,
@@ -352,6 +357,8 @@ def main() -> None:
         "split": {k.removeprefix("wall_"): after[k] - before[k] for k in after},  # CPU seconds
         "waits": {k: waits[k] - waits0[k] for k in waits} if waits else None,  # CPU seconds at the barriers
         "ksp": ksp1 - ksp0,  # wall seconds in PETSc's KSPSolve and KSPSetUp (part of the gas phase)
+        # the pressure solver's flops, messages sent, bytes sent and reductions in the window (PETSc's counts)
+        "solver": dict(zip(("flops", "messages", "bytes", "reductions"), (solver1 - solver0).tolist(), strict=True)),
         "overrides": args.set,
         "staged": bool(args.staged or comm.size > 1),
         "gas_steps": s.steps - steps0,

@@ -55,9 +55,7 @@ MESHES = {"C2": "demos/pseudo2d/C2.toml", "C3": "demos/pseudo2d/C3.toml"}  # int
 UPDATE_BYTES = 6 * 8  # a ghost update row: pos, vel (no rotation; 9 doubles with rotation)
 REFRESH_BYTES = 12 * 8 + 3 * 8  # a ghost refresh row (exchange.refresh_ghosts): 12 doubles, 3 integers
 MIGRATE_BYTES = 342  # a migrating particle: every per-particle array (the DEM's 342 B per particle)
-GAS_EXCHANGES = 30  # halo exchanges per gas step (field scatters and pressure CG iterations) ...
-GAS_VALUES = 1.7  # ... of this many doubles per halo node on average
-GAS_REDUCTIONS = 30  # global reductions per gas step (CFL, mass balance, CG dot products)
+GAS_VALUES = 1.7  # doubles per halo node in a halo exchange of the gas step outside its pressure solver (estimate)
 # Measured on 2 ranks of one machine (scaling_measure.py --pingpong, fastest of many): the calls of a ghost
 # update (2,200 rows each way and the rebuild test's reduction) and of a rebuild's exchanges (migration,
 # ghost refresh), shared memory; over a network the model adds latency and bytes / bandwidth on top.
@@ -70,6 +68,17 @@ REBUILD_CALLS = 141e-6
 # reductions.
 GAS_CALLS = {"scatter_forward": 5, "vec_scatter": 7, "ghost_update": 2, "allreduce": 4, "Allreduce": 3}
 COUPLING_CALLS = {"scatter_forward": 2, "scatter_reverse": 2, "allreduce": 2}
+# Outside the pressure solver the gas step's exchanges are those calls: each halo update, scatter or ghost
+# update sends one message to each halo neighbour, each reduction costs log2(P) latencies.
+GAS_EXCHANGES = GAS_CALLS["scatter_forward"] + GAS_CALLS["vec_scatter"] + GAS_CALLS["ghost_update"]
+GAS_REDUCTIONS = GAS_CALLS["allreduce"] + GAS_CALLS["Allreduce"]
+# The pressure solver's own messages, bytes and reductions per gas step at each rank count, counted by PETSc
+# in its solves and AMG set-ups (`gas_step.py --solver-counts`, on each mesh with a bubbling-bed-like ε, run
+# at 1-64 ranks oversubscribed: counts, not times). Each message costs a latency and its bytes / bandwidth, as
+# every message of the model does; each exchange the software cost of a PETSc ghost update beyond one process
+# (`call_s["ghost_update"]`), with as many exchanges at every P as messages on 2 ranks (one neighbour each).
+SOLVER_COUNTS = OUT / "solver_counts.json"
+LEVELS = {"C2": "intermediate", "C3": "fine"}
 # A decomposition of the particles apart from the mesh's: each gas step, a particle whose cell another rank
 # owns goes there (position, velocity, diameter, id: 8 doubles) and its forces come back (drag and pressure
 # gradient force, 6 doubles), in one exchange each way; taken to cost the calls of a ghost update.
@@ -232,6 +241,44 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
     }
 
 
+def solver_counts(real: dict | None = None, path: Path = SOLVER_COUNTS) -> dict | None:
+    """Per mesh (C2, C3) and rank count P > 1: the pressure solver's messages, bytes and reductions per gas step
+    on its busiest rank (max over ranks of each), from `gas_step.py --solver-counts`; None, with the command to
+    run, if any is missing.
+
+    `real`: a 2-rank window of the bubbling bed (`scaling_measure.py`, which records the same counts). The
+    gas-step benchmark's bed-like ε changes more slowly than a bubbling bed's, so its AMG is set up again less
+    often; every count is scaled by the real window's count over the benchmark's on C2 at 2 ranks ("scale").
+    """
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    out, missing = {}, []
+    for name, level in LEVELS.items():
+        out[name] = {}
+        for P in RANKS[1:]:
+            got = data.get(level, {}).get(str(P))
+            if got is None:
+                missing.append(f"{level} at {P}")
+                continue
+            out[name][P] = {k: float(max(got[k])) for k in ("messages", "bytes", "reductions")}
+    if missing:
+        print(
+            f"skipped: no pressure-solver counts in {path} for the {', '.join(missing)} rank(s); for each mesh level "
+            "and P run `mpirun -n P --oversubscribe python benchmarks/gas_step.py --level LEVEL --warmup 20 --steps "
+            f"20 --solver-counts {path}`"
+        )
+        return None
+    out["scale"] = {"messages": 1.0, "bytes": 1.0, "reductions": 1.0}
+    if real is not None and "solver" in real["per_rank"][0]:
+        for k in out["scale"]:
+            got = max(r["solver"][k] / r["gas_steps"] for r in real["per_rank"])
+            out["scale"][k] = got / out["C2"][2][k]
+    for name in LEVELS:
+        for v in out[name].values():
+            for k, f in out["scale"].items():
+                v[k] *= f
+    return out
+
+
 def load_factor(m1: dict, loaded: dict | None) -> dict:
     """Per phase, a core's CPU seconds while every core works (`loaded`, `--concurrent`) over m1's alone."""
     factor = {"dem": 1.0, "coupling": 1.0, "gas": 1.0}
@@ -317,11 +364,17 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
     hn = c[f"{gkey}halo_nbrs"][None, :]
     per_node = cost["us_per_node_step" if name == "C2" and P == 1 else "us_per_node_step_iter"]
     coo = cost["us_per_entry_coo"] * cost["entries_per_node"] * (nodes + halo) * (P > 1)  # L_w's COO fill
+    solver = cost["solver"][name][P] if P > 1 else {"messages": 0.0, "bytes": 0.0, "reductions": 0.0}
+    solver_calls = cost["solver"][name][2]["messages"] if P > 1 else 0.0  # one message per exchange on 2 ranks
     gas = ng * (
         (nodes * per_node + coo) * f["gas"] * 1e-6
         + GAS_EXCHANGES * (hn * L + halo * GAS_VALUES * 8 / B)
         + GAS_REDUCTIONS * red
         + sum(n * calls.get(k, 0.0) for k, n in GAS_CALLS.items())
+        + solver["messages"] * L
+        + solver_calls * calls.get("ghost_update", 0.0)
+        + solver["bytes"] / B
+        + solver["reductions"] * red
     )
     cpl = cpl + ng * sum(n * calls.get(k, 0.0) for k, n in COUPLING_CALLS.items())
     out = {k: float(np.mean(np.max(v, axis=1))) for k, v in (("dem", dem), ("coupling", cpl), ("gas", gas))}
@@ -386,6 +439,23 @@ def main() -> None:
         load_measured("C2", 2, "_concurrent"), calls if None not in calls else None, load_measured("C2", 1, "_owners"),
     )  # fmt: skip
     cost["h_ratio"] = float(census["C2/h_min"] / census["C3/h_min"])  # gas steps per second, fine / intermediate
+    real = load_measured("C2", 2, args.check) if args.check else m2
+    cost["solver"] = solver_counts(real)
+    if cost["solver"] is None:
+        return
+    sf = cost["solver"]["scale"]
+    print(
+        f"pressure-solver counts scaled by the bubbling bed's over the benchmark's at 2 ranks: messages "
+        f"{sf['messages']:.2f}, bytes {sf['bytes']:.2f}, reductions {sf['reductions']:.2f}"
+    )
+    for name in LEVELS:
+        per_P = cost["solver"][name]
+        print(
+            f"{name}'s pressure solver per gas step on the busiest rank (P: messages, kB, reductions): "
+            + ", ".join(
+                f"{P}: {v['messages']:.0f}, {v['bytes'] / 1e3:.0f}, {v['reductions']:.0f}" for P, v in per_P.items()
+            )
+        )
     net = {"bandwidth": args.bandwidth, "latency": args.latency}
     times = np.asarray(census["times"])
     n_snap = times.size
@@ -477,6 +547,7 @@ def efficiency_rows(census: dict, name: str, cost: dict, net: dict, snap: slice,
         n_sub = cost["dem_steps_per_s"] / (cost["gas_steps_per_s"] * (cost["h_ratio"] if name != "C2" else 1))
         kb = float(np.mean(census[f"{key}sent"][snap].max(axis=1))) * UPDATE_BYTES * n_sub / 1e3
         kb += float(census[f"{gkey}halo"].max()) * GAS_EXCHANGES * GAS_VALUES * 8 / 1e3
+        kb += cost["solver"][name][P]["bytes"] / 1e3 if P > 1 else 0.0
         if variant == "nodal" and P > 1:
             kb += float(np.mean(census[f"{key}foreign_nodes"][snap].max(axis=1))) * NODAL_BYTES / 1e3
         elif key != f"{name}/{P}/":
