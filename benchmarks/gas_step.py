@@ -144,7 +144,7 @@ def main(
             t_start = time.perf_counter()
             c_start = time.process_time()
             acc = {}
-            counts0 = solver_counts()
+            counts0 = solver_counts() if counts else None
         dt = s.compute_dt()
         e = bed_eps(s.x, s.t + dt, vertical)
         info = s.step(dt, eps=e, K=K, Kv=K[:, None] * vbar)
