@@ -16,6 +16,7 @@ counts of messages, bytes and reductions in its solves and preconditioner set-up
 `mpirun -n 16 --oversubscribe python benchmarks/gas_step.py --warmup 10 --steps 5 --solver-counts F.json`.
 """
 
+import json
 import os
 import platform
 import tempfile
@@ -49,9 +50,10 @@ def write_solver_counts(path: str, level: str, counts: np.ndarray, steps: int, n
     rows = comm.gather(counts / steps, root=0)
     if comm.rank != 0:
         return
-    import json
-
-    data = json.load(open(path)) if os.path.exists(path) else {}
+    data = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            data = json.load(f)
     a = np.array(rows)
     data.setdefault(level, {})[str(comm.size)] = {
         "nodes": nodes,
