@@ -399,11 +399,12 @@ SCHEMA: dict[str, dict[str, Param]] = {
         "drag": Param("gidaspow-blend", "-", "drag closure", str, choices=DRAG_LAWS),
         "pressure_gradient": Param(True, "-", "include the pressure-gradient force -V_p grad p (seed 001 eq 27)", bool),
         "pressure_gradient_reaction": Param(
-            "projected",
+            "nodal",
             "-",
-            "what the gas receives for the pressure-gradient force: projected (-sum w F_P, filtered, seed 001 eq 29)"
-            " or nodal ((1 - eps_i) grad p_i at each node, so the gas carries -eps grad p; the particles get grad p"
-            " averaged by the filter's transpose, so that the totals still balance)",
+            "what the gas receives for the pressure-gradient force: nodal ((1 - eps_i) grad p_i at each node, so the"
+            " gas carries -eps grad p as in seed 000 eq 26 and model-A codes; the particles get grad p averaged by"
+            " the filter's transpose, so that the totals still balance) or projected (-sum w F_P, filtered, seed"
+            " 001 eq 29: lowers a bed's pressure gradient on cells a quarter of its height or more)",
             str,
             choices=("projected", "nodal"),
         ),

@@ -1,13 +1,14 @@
 """Seed 001 C1 (slow): a run of the pseudo-2D bed circulates solid up the centre, down the walls.
 
-C1 as Table 3 gives it (the gas walls with febed's default porous wall law, `C1.toml`, a 10 s run averaged over
-1-5 s, its start-up, and over 5-10 s, its steady regime), and variants that keep the bottom patch strictly
+C1 as Table 3 gives it (the gas walls with febed's default porous wall law, `C1.toml`, a 20 s run averaged over
+1-5 s, its start-up, and over 15-20 s, its steady regime), and variants that keep the bottom patch strictly
 no-slip: the front and back walls slipping (`C1-slip-front-back.toml`), with Navier partial slip there
 (`C1-partial-slip-front-back.toml`), or on every wall with the inlet taking the patch's edge nodes
 (`C1-partial-slip-edges.toml`).
 
 `FEBED_C1_END` sets the simulated time of the variants (default 3 s; the last 2/3 are averaged). On a 2-core
-machine the 75 g bed (57,296 particles) runs at 10-20 min per simulated second: this is a `make test-all` test.
+machine the 75 g bed (57,296 particles) runs at 7-10 min per simulated second serially (C1's 20 s: about
+2.5 hours): this is a `make test-all` test.
 """
 
 import os
@@ -23,9 +24,11 @@ from febed.post import post_run
 DEMO = Path(__file__).parents[2] / "demos" / "pseudo2d"
 
 
-# seed 001 runs every case 20 s "to reach a steady regime" before averaging; C1 here runs 10 s: its first
-# seconds turn the other way (the start-up), the last five are its steady regime
-C1_END = 10.0
+# seed 001 runs every case 20 s "to reach a steady regime" before averaging; so does C1 here. Its loops start
+# the other way and turn seed 001's way at a time that is chance (2-14 s in six runs, docs/examples/pseudo2d.md):
+# the steady regime is checked over the last 5 s, and no circulation is asserted over the start-up
+C1_END = 20.0
+STEADY = (15.0, C1_END)
 
 
 def _run_only(tmp_path_factory, case: str, end: float) -> Path:
@@ -51,14 +54,14 @@ def c1_run(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def c1(c1_run):
-    """C1 over 1-5 s: from the first bubbles to the end of the start-up."""
+    """C1 over 1-5 s: its start-up, from the first bubbles on."""
     return post_run(c1_run, window=(1.0, 5.0), figures=False)
 
 
 @pytest.fixture(scope="module")
 def c1_steady(c1_run):
-    """C1 over 5-10 s: its steady regime."""
-    return post_run(c1_run, window=(5.0, C1_END), figures=False, out=c1_run / "post-steady")
+    """C1 over 15-20 s: its steady regime."""
+    return post_run(c1_run, window=STEADY, figures=False, out=c1_run / "post-steady")
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +71,8 @@ def c1_slip_front_back(tmp_path_factory):
 
 @pytest.mark.slow
 def test_c1_pressure_drop_carries_the_bed(c1):
-    """C1 as given, over 1-5 s (measured: dp 0.957-0.958 W, the bottom's contacts 0.058-0.059 W)."""
+    """C1 as given, over 1-5 s (measured with either pressure-gradient reaction: dp 0.957-0.961 W, the bottom's
+    contacts 0.058-0.059 W)."""
     avg, v = c1.fields, c1.values
     # the gas carries the bed: time-averaged pressure drop within 5 % of the bed weight per cross-section
     assert abs(v["dp_bed_over_weight"] - 1.0) < 0.05, v["dp_bed_over_weight"]
@@ -81,32 +85,16 @@ def test_c1_pressure_drop_carries_the_bed(c1):
 
 @pytest.mark.slow
 def test_c1_bubbles_and_is_two_dimensional(c1):
-    """With the wall law the coarse bed bubbles (measured over 1-5 s: 0.252; strict no-slip walls: 0.03)."""
+    """With the wall law the coarse bed bubbles (measured over 1-5 s: 0.252-0.256; strict no-slip walls: 0.03)."""
     v = c1.values
     assert v["bubble_fraction"] > 0.1, v["bubble_fraction"]
     assert v["depth_zH0.16_spread_all/Uf"] < 0.03, v["depth_zH0.16_spread_all/Uf"]
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="febed's C1 (coarse mesh, default numerics) circulates the other way in its start-up, the first 3-8 s: "
-    "bed-averaged vertical solid flux over 1-5 s -31 / +17 rho U_f (centre / walls) in one run, -8 / -6 in "
-    "another; seed 001's way after it (test_c1_after_its_start_up_circulates_up_the_centre_down_the_walls); "
-    "docs/examples/pseudo2d.md",
-)
-def test_c1_circulation_up_the_centre_down_the_walls(c1):
-    v = c1.values
-    # solid circulation: vertical flux averaged over the bed's rows, central third up, outer 15 % down
-    centre, walls = v["bed_flux_centre/rhoUf"], v["bed_flux_walls/rhoUf"]
-    assert centre > 20.0 and walls < -20.0, (centre, walls)
-
-
-@pytest.mark.slow
 def test_c1_after_its_start_up_circulates_up_the_centre_down_the_walls(c1_steady):
-    """C1 as given, over 5-10 s: seed 001's double loop with the gas carrying the bed (measured in a run from
-    t = 0: +32.5 / -51.4 rho U_f, dp 0.963 W, bottom 0.056 W; another run over 5-15 s: +40 / -50, 0.964 W, 0.052 W).
-    The run takes about 80 min."""
+    """C1 as given, over 15-20 s: seed 001's double loop with the gas carrying the bed (measured in the run whose
+    loops turned last, at 14 s: +49.5 / -68.4 rho U_f, dp 0.961 W, bottom 0.055 W)."""
     v = c1_steady.values
     centre, walls = v["bed_flux_centre/rhoUf"], v["bed_flux_walls/rhoUf"]
     assert centre > 20.0 and walls < -20.0, (centre, walls)
@@ -117,9 +105,9 @@ def test_c1_after_its_start_up_circulates_up_the_centre_down_the_walls(c1_steady
 
 @pytest.mark.slow
 def test_c1_with_slipping_front_and_back_walls_circulates_seed_001s_way(c1_slip_front_back):
-    """The gas slips along the front and back walls (side walls no-slip): the bed bubbles and the double loop
-    turns up the centre, down the side walls (measured: +53 / -75 rho U_f over 1.0-2.5 s, bubble fraction
-    0.29, where C1 has -64 / +46 and 0.03)."""
+    """The gas slips along the front and back walls (side walls with the wall law): the bed bubbles and the double
+    loop turns up the centre, down the side walls (measured over 1-3 s: +45 / -65 rho U_f, bubble fraction 0.30;
+    with the projected reaction over 1.0-2.5 s: +53 / -75, 0.29)."""
     v = c1_slip_front_back.values
     centre, walls = v["bed_flux_centre/rhoUf"], v["bed_flux_walls/rhoUf"]
     assert centre > 0.0 > walls, (centre, walls)
@@ -129,8 +117,8 @@ def test_c1_with_slipping_front_and_back_walls_circulates_seed_001s_way(c1_slip_
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="with the front and back walls slipping the gas carries 0.905 of the bed weight (1.0-2.5 s; 0.907 "
-    "with frictionless walls): the bottom holds 0.108 by contact, a heap on the coarse mesh's patch (17.6 % of "
+    reason="with the front and back walls slipping the gas carries 0.924 of the bed weight over 1-3 s (0.905 with "
+    "the projected reaction): the bottom holds 0.104 by contact, a heap on the coarse mesh's patch (17.6 % of "
     "the bottom); docs/examples/pseudo2d.md",
 )
 def test_c1_with_slipping_front_and_back_walls_pressure_drop(c1_slip_front_back):
@@ -139,9 +127,9 @@ def test_c1_with_slipping_front_and_back_walls_pressure_drop(c1_slip_front_back)
 
 @pytest.mark.slow
 def test_c1_with_slipping_front_and_back_walls_force_balance(c1_slip_front_back):
-    """Without gas shear on the front and back walls nothing else holds the bed: the pressure drop and the
-    bottom's contacts carry its weight (measured 0.905 + 0.108 = 1.013 over 1.0-2.5 s; this test's own 3 s run:
-    0.912 + 0.099 = 1.011 over 1-3 s, flux +55 / -72, bubble fraction 0.25; about 20 min)."""
+    """Without gas shear on the front and back walls, the pressure drop and the bottom's contacts carry the weight
+    but for the side walls' shear (measured over 1-3 s: 0.924 + 0.104 = 1.028; with the projected reaction
+    0.912 + 0.099 = 1.011; about 20 min)."""
     v = c1_slip_front_back.values
     held = v["dp_bed_over_weight"] + v["bottom_support/W"]
     assert abs(held - 1.0) < 0.03, (v["dp_bed_over_weight"], v["bottom_support/W"])
@@ -169,8 +157,9 @@ def c1_partial_slip_front_back(tmp_path_factory):
 def test_c1_with_partial_slip_front_and_back_walls_circulates_seed_001s_way(c1_partial_slip_front_back):
     """Navier partial slip (slip length 1 mm) on the front and back walls, side walls no-slip: the
     bed bubbles, stays two-dimensional and turns seed 001's way, and the walls' shear carries part of the
-    weight that free slip leaves to the pressure drop alone (measured over 1-3 s: +53 / -67 rho U_f,
-    bubble fraction 0.248, spreads 0.004 / 0.004 U_f, dp 0.932 W + bottom 0.092 W = 1.024)."""
+    weight that free slip leaves to the pressure drop alone (measured over 1-3 s: +27 / -57 rho U_f, bubble
+    fraction 0.32, spreads 0.004 / 0.003 U_f, dp 0.919 W + bottom 0.101 W = 1.020; with the projected reaction
+    +53 / -67, 0.248, 0.932 W + 0.092 W = 1.024)."""
     v = c1_partial_slip_front_back.values
     centre, walls = v["bed_flux_centre/rhoUf"], v["bed_flux_walls/rhoUf"]
     assert centre > 0.0 > walls, (centre, walls)
@@ -183,8 +172,9 @@ def test_c1_with_partial_slip_front_and_back_walls_circulates_seed_001s_way(c1_p
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="with partial slip (1 mm) on the front and back walls the gas carries 0.932 of the bed weight over "
-    "1-3 s (0.905 with free slip): the bottom still holds 0.092 by contact, the heap on the coarse patch; "
+    reason="with partial slip (1 mm) on the front and back walls the gas carries 0.919 of the bed weight over "
+    "1-3 s (0.932 with the projected reaction): the bottom still holds 0.101 by contact, the heap on the coarse "
+    "patch; "
     "docs/examples/pseudo2d.md",
 )
 def test_c1_with_partial_slip_front_and_back_walls_pressure_drop(c1_partial_slip_front_back):
@@ -198,7 +188,8 @@ def c1_partial_slip_edges(tmp_path_factory):
 
 @pytest.mark.slow
 def test_c1_with_every_wall_partial_slip_and_the_inlet_over_the_patch_edges(c1_partial_slip_edges):
-    """Every wall partial slip (1 mm) and the inlet taking the patch's edge nodes (`wins_over`):
+    """Every wall partial slip (1 mm) and the inlet taking the patch's edge nodes (`wins_over`), with the
+    projected pressure-gradient reaction the case file keeps:
     the heap on the bottom halves and, over 1-3 s, the bed circulates seed 001's way with the pressure drop
     within 5 % of its weight (measured: +23 / -36 rho U_f, dp 0.956 W + bottom 0.048 W = 1.004). Narrowly:
     its first 1.5 s circulate the other way, and over 1.5-3 s dp is 0.942 W; continued to 5 s, 0.951-0.954 W over
