@@ -7,7 +7,7 @@ and 1.25 mm: 3, 6 and 12 cells across. The pressure gradient over the middle hal
 Ergun's at the void fraction of the same slab, measured from the particles (exact sphere-slab volumes).
 
 A wall that holds its nodes at rest makes the gas of half a cell next to it stand still, so the bed resists
-more the coarser the mesh (strict no-slip: 1.5x Ergun on 3 cells); the porous wall law (`wall_law =
+more the coarser the mesh (strict no-slip: 2.4x Ergun on 3 cells); the porous wall law (`wall_law =
 "brinkman"`, the default) and slip walls should give Ergun on every mesh. The printed lines:
 
     fixed bed: dp/Ergun 3 cells X, 6 cells Y, 12 cells Z          (walls with the default wall law)
