@@ -36,6 +36,7 @@ import numpy as np
 from febed.case import load_case
 from febed.meshing import load_case_mesh
 from febed.runs.probes import SectionAverage
+from febed.schema import SCHEMA
 from febed.solver import build_solver
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,9 +46,10 @@ RHO_G, MU, U = 1.2, 1.8e-5, 0.3
 CELLS = (3, 6, 12)
 FILTER = 1
 LOG = logging.getLogger("febed.bench.fixed_bed")
+REACTION = SCHEMA["coupling"]["pressure_gradient_reaction"].default  # febed's default
 
 
-def case_data(cells: int, walls: dict, out: Path, pack: bool = False, reaction: str = "nodal") -> dict:
+def case_data(cells: int, walls: dict, out: Path, pack: bool = False, reaction: str = REACTION) -> dict:
     """The case of the duct meshed with `cells` cubes across, walls given as a [gas.boundary.walls] table."""
     return {
         "run": {"mode": "cfd-dem", "gravity": 9.81 if pack else 0.0, "end_time": 1.0},
@@ -108,7 +110,9 @@ def pack(workdir: Path) -> None:
     np.savez_compressed(BED, **data)
 
 
-def dp_ratio(cells: int, walls: dict, workdir: Path, steps: int = 1000, reaction: str = "nodal") -> tuple[float, float]:
+def dp_ratio(
+    cells: int, walls: dict, workdir: Path, steps: int = 1000, reaction: str = REACTION
+) -> tuple[float, float]:
     """(−dp/dz over the middle half of the bed) / Ergun at the slab's measured ε, and that ε."""
     case = load_case(data=case_data(cells, walls, workdir / f"run{cells}", reaction=reaction))
     md = load_case_mesh(case, cache_dir=workdir / "mesh")
@@ -133,7 +137,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repack", action="store_true", help="pack the bed again (overwrites tests/data's bed)")
     ap.add_argument("--cells", type=int, nargs="+", default=list(CELLS), help="cells across the 15 mm depth")
-    ap.add_argument("--reaction", choices=("projected", "nodal"), default="nodal",
+    ap.add_argument("--reaction", choices=("projected", "nodal"), default=REACTION,
                     help="coupling.pressure_gradient_reaction")  # fmt: skip
     args = ap.parse_args()
     import tempfile
