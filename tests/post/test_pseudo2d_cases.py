@@ -68,6 +68,23 @@ def test_c1_partial_slip_edges_lets_every_wall_slip_and_the_inlet_take_the_patch
     assert other == {k: v for k, v in p.coupling.as_dict().items() if k != "pressure_gradient_reaction"}
 
 
+def test_c3_is_c2_on_the_fine_mesh_with_four_convective_substeps():
+    """C3.toml, and C3 in the studies, take four explicit sub-steps per gas step; C1 and C2 one."""
+    c2, c3 = load_case(DEMO / "C2.toml"), load_case(DEMO / "C3.toml")
+    assert (c2.gas.convection_substeps, c3.gas.convection_substeps) == (1, 4)
+    assert load_case(DEMO / "C1.toml").gas.convection_substeps == 1
+    g2, g3 = c2.gas.as_dict(), c3.gas.as_dict()
+    assert {k: v for k, v in g3.items() if k != "convection_substeps"} == {
+        k: v for k, v in g2.items() if k != "convection_substeps"
+    }
+    for sec in ("particles", "contact", "coupling"):
+        assert getattr(c2, sec).as_dict() == getattr(c3, sec).as_dict(), sec
+    t3 = {m.name: m for m in load_study(DEMO / "study-table3.toml").members}
+    assert "gas.convection_substeps=4" in t3["C3"].overrides
+    assert not any("convection_substeps" in o for o in t3["C2"].overrides)
+    assert "gas.convection_substeps = 4" in load_study(DEMO / "study-mesh.toml").common
+
+
 def test_studies_load():
     sizes = {"mesh": 3, "friction-wall": 4, "friction-particle": 4, "table3": 13, "walls": 9}
     for name, n in sizes.items():
