@@ -37,6 +37,15 @@ Options that add to the window or change it:
   docs/scaling.md the slow-down varied from 0 to 18 % between runs).
 - `--barriers`: each phase of the step starts with a barrier whose time is recorded apart ("waits"), so that
   a phase's time is its own work, not the wait for another rank.
+- `--core-speed`: before every gas step (outside the phases' timers) each rank times a fixed compiled loop
+  of about 0.2 ms held in its core's registers and level-1 cache (`core_probe`): how fast its core runs at
+  that moment. On a virtual machine the cores' speeds change with the host's other work, and not together;
+  a parallel run goes at the pace of its slower core between two exchanges, which a model of equal cores
+  does not see (`scaling_projection.py --check` reads these samples). On 2 ranks the ranks then also time
+  10 round trips of 8 bytes between them (`message_probe`, half a round trip each): the message latency of
+  that moment; and every 4th gas step, both together, a sum over an array of their own of 16 MB
+  (`memory_probe`, the second of two passes): whether their data shares one last-level cache at that
+  moment (a rank of C2 on 2 ranks works on about that much).
 - `--profile`: the timed window under cProfile, one file per rank
   (`profile_<case>_P<ranks><tag>_r<rank>.pstats`); `profile_compare.py` sets a 2-rank profile against the
   serial one function by function, to find the work that does not divide by the ranks.
@@ -62,6 +71,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
+from numba import njit
 
 import febed.solver
 from febed.case import load_case
@@ -187,6 +197,59 @@ def pingpong(comm, ghosts: int, movers: int) -> None:
         )
 
 
+@njit(cache=True)
+def _probe_loop(n: int) -> float:  # pragma: no cover
+    """A dependent chain of multiply-adds on four registers: the core's speed, not the memory's."""
+    a, b, c, d = 1.0, 0.5, 0.25, 0.125
+    for _ in range(n):
+        a = a * 0.999999 + b
+        b = b * 0.999999 + c
+        c = c * 0.999999 + d
+        d = d * 0.999999 + 1e-9
+    return a + b + c + d
+
+
+def core_probe(s, comm, n: int = 100_000, trips: int = 10, mb: int = 16) -> tuple[list, list, list]:
+    """Before each of the solver's gas steps time `_probe_loop(n)` and, on 2 ranks, `trips` round trips of
+    8 bytes between them (after one that waits for the later rank) and, every 4th step, a sum over `mb` MB
+    on both at once; returns the lists the seconds go into (the loop's, half a round trip's, the sum's)."""
+    _probe_loop(10)  # compiled (or loaded from the cache) before the window
+    loop, message, memory = [], [], []
+    block = np.ones(mb * (1 << 20) // 8)
+    inner = s.advance_particles
+    buf = np.zeros(1)
+    other = 1 - comm.rank
+
+    def roundtrip() -> None:
+        if comm.rank == 0:
+            comm.Send(buf, dest=other)
+            comm.Recv(buf, source=other)
+        else:
+            comm.Recv(buf, source=other)
+            comm.Send(buf, dest=other)
+
+    def call(*a, **k):
+        t = time.perf_counter()
+        _probe_loop(n)
+        loop.append(time.perf_counter() - t)
+        if comm.size == 2:
+            roundtrip()  # both ranks here
+            t = time.perf_counter()
+            for _ in range(trips):
+                roundtrip()
+            message.append((time.perf_counter() - t) / (2 * trips))
+            if len(message) % 4 == 0:
+                roundtrip()  # start together
+                block.sum()
+                t = time.perf_counter()
+                block.sum()
+                memory.append(time.perf_counter() - t)
+        return inner(*a, **k)
+
+    s.advance_particles = call
+    return loop, message, memory
+
+
 def _barriers(s, comm) -> dict:
     """Start each phase of the solver's step (DEM, coupling, gas) with a barrier; returns its CPU seconds per phase.
 
@@ -286,6 +349,9 @@ def main() -> None:
     )  # fmt: skip
     parser.add_argument("--calls", type=int, default=0, help="then time this many of each exchange call")
     parser.add_argument("--profile", action="store_true", help="record the timed window with cProfile, per rank")
+    parser.add_argument(
+        "--core-speed", action="store_true", help="time a fixed loop before every gas step: each core's pace"
+    )
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "out"))
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
@@ -320,12 +386,15 @@ def main() -> None:
         s.coupler = OwnerCoupler.build(s.ma, s.md.mesh, s.gas.Q, s.md.mesh, s.depth, **s.law)
         s._located = -1  # locate the particles again, on the new coupler
     waits = _barriers(s, comm) if args.barriers or concurrent else None
+    probes, messages, memory = core_probe(s, run_comm) if args.core_speed else (None, None, None)
     run.advance_to(s.t + args.warmup)
     comm.barrier()
     before = s.timers.as_dict()
     ksp0 = _ksp_seconds()
     solver0 = solver_counts()
     waits0 = dict(waits) if waits else None
+    probes0 = len(probes) if probes is not None else 0
+    memory0 = len(memory) if memory is not None else 0
     steps0, builds0, dem0 = s.steps, s.dem.pairs.builds, s.dem.steps
     start = loads(s)
     w0, c0 = time.perf_counter(), time.process_time()
@@ -367,6 +436,10 @@ def main() -> None:
         "start": start,
         "samples": samples,
         "concurrent": concurrent,  # every rank ran the serial window alone
+        # --core-speed: seconds of the fixed loop before each gas step of the window (this rank's core's pace)
+        "core_probe": probes[probes0:] if probes is not None else None,
+        "message_probe": messages[probes0:] if messages else None,  # and half a round trip to the other rank
+        "memory_probe": memory[memory0:] if memory else None,  # and a pass over 16 MB, both ranks at once
     }
     if concurrent:
         comm.barrier()

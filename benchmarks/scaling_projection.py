@@ -620,6 +620,67 @@ def validate(census, cost, net, m1, m2, result) -> None:
         f"({100 * (model['total'] - reference):+.1f} points{own})"
     )
     result["validation"]["model_snapshots"] = avg
+    pace = core_pace(m1, m2) if m2 is not None else None
+    if pace is not None:  # the model on the cores the window ran on: each gas step at the slower core's pace
+        on_cores = model["total"] / pace["uneven"]
+        result["validation"].update({"core_pace": pace, "model_on_cores": on_cores})
+        print(
+            f"  the cores' pace in the 2-rank window (`--core-speed`, {pace['samples']} gas steps): the slower core "
+            f"{pace['uneven']:.3f} of the two cores' mean (equal cores: 1), the two cores' mean "
+            f"{pace['busy']:.3f} of the serial window's core"
+        )
+        print(
+            f"validation on the window's cores: model {on_cores:.1%} (its equal cores' {model['total']:.1%} over "
+            f"{pace['uneven']:.3f}) against {reference:.1%} measured ({100 * (on_cores - reference):+.1f} points)"
+        )
+        if pace.get("latency") is not None:  # the model with the messages' latency of the window
+            lat = pace["latency"]
+            t2w = phase_times(census, "C2", 2, cost, {**net, "latency": lat}, ck)
+            on_window = t1["total"] / (2 * t2w["total"]) / pace["uneven"]
+            result["validation"]["model_on_window"] = on_window
+            print(
+                f"  messages in the window: half a round trip {1e6 * pace['latency_median']:.2f} µs (median), "
+                f"{1e6 * lat:.2f} µs (mean; the model's latency {1e6 * net['latency']:.2f} µs)"
+            )
+            if pace.get("memory_gbs"):
+                gbs = ", ".join(f"{g:.1f}" for g in pace["memory_gbs"])
+                print(f"  a pass over 16 MB on both ranks at once: {gbs} GB/s per rank (median)")
+            print(
+                f"validation on the window's cores and messages: model {on_window:.1%} against {reference:.1%} "
+                f"measured ({100 * (on_window - reference):+.1f} points)"
+            )
+
+
+def core_pace(m1: dict, m2: dict, smooth: int = 5) -> dict | None:
+    """How unevenly the cores ran in a 2-rank window, from `scaling_measure.py --core-speed` samples.
+
+    Each rank timed a fixed loop before every gas step. A gas step exchanges between the ranks many times, so
+    it goes at the pace of the rank whose core is slower at that moment. `uneven` = Σ_steps max over ranks /
+    Σ_steps mean over ranks of the loop's time (1 for equal cores): the factor by which cores of equal mean
+    speed but unequal moment-to-moment speed slow a run that the model counts on equal cores. `busy` = the
+    cores' mean time over the serial window's (what the model's load factor stands for). Each rank's series
+    is a running median over `smooth` gas steps first (a timer interrupt during one loop is not the core's
+    pace; the host's other work changes it over seconds). `latency` (`latency_median`): the mean (median)
+    half round trip of 8 bytes between the ranks, timed before every gas step. None without samples.
+    """
+    rows = [r.get("core_probe") for r in m2["per_rank"]]
+    one = m1["per_rank"][0].get("core_probe")
+    if not one or any(not r for r in rows):
+        return None
+    n = min(len(r) for r in rows)
+    a = np.array([r[:n] for r in rows])
+    if n >= smooth:
+        win = np.lib.stride_tricks.sliding_window_view(a, smooth, axis=1)
+        a = np.median(win, axis=2)
+    uneven = float(np.sum(a.max(axis=0)) / np.sum(a.mean(axis=0)))
+    out = {"uneven": uneven, "busy": float(np.mean(a) / np.median(one)), "samples": n}
+    msg = m2["per_rank"][0].get("message_probe")
+    if msg:
+        out.update({"latency": float(np.mean(msg)), "latency_median": float(np.median(msg))})
+    mem = [r.get("memory_probe") for r in m2["per_rank"]]
+    if all(mem):  # GB/s of each rank's pass over its 16 MB, both at once
+        out["memory_gbs"] = [float(16 * (1 << 20) / np.median(m) / 1e9) for m in mem]
+    return out
 
 
 def measured_efficiency(m1: dict, m2: dict) -> dict:
