@@ -661,7 +661,8 @@ def core_pace(m1: dict, m2: dict, smooth: int = 5) -> dict | None:
     cores' mean time over the serial window's (what the model's load factor stands for). Each rank's series
     is a running median over `smooth` gas steps first (a timer interrupt during one loop is not the core's
     pace; the host's other work changes it over seconds). `latency` (`latency_median`): the mean (median)
-    half round trip of 8 bytes between the ranks, timed before every gas step. None without samples.
+    half round trip of 8 bytes between the ranks, timed before every gas step; `memory_gbs`: each rank's median
+    GB/s over its 16 MB pass, both ranks at once (every 4th gas step). None without samples.
     """
     rows = [r.get("core_probe") for r in m2["per_rank"]]
     one = m1["per_rank"][0].get("core_probe")
