@@ -370,6 +370,13 @@ class VANSSolver:
             raise ValueError("eps (void fraction) must lie in (0, 1] at every node")
 
     # ------------------------------------------------------------------------------------ checkpoint
+    def _ghosted(self, owned) -> np.ndarray:
+        """Values at the owned nodes with their ghost nodes' (a copy; through the weights' function)."""
+        f = self._weights
+        f.x.array[: self.n_owned] = np.asarray(owned, dtype=float).reshape(self.n_owned)
+        f.x.scatter_forward()
+        return f.x.array.copy()
+
     def get_state(self) -> dict[str, np.ndarray]:
         """Everything the next step reads, over the owned nodes: q, p, ε, ∇p, Gp, the last increment φ (and K/(ρε))."""
         n = self.n_owned
@@ -381,12 +388,8 @@ class VANSSolver:
             "gp": self.gp_owned.copy(),
             "phi": self.pressure.x.array[:n].copy(),  # the warm start of the next pressure solve
             **({"drag_rate": self._drag_rates.copy()} if self.params.drag_number > 0.0 else {}),  # next step's limit
-            **({"pc_weights": w.copy()} if (w := self._pc_weights()) is not None else {}),  # weighted solve's PC
+            **self.pressure.preconditioner_state(),  # the weighted solve's preconditioner, once built
         }
-
-    def _pc_weights(self) -> np.ndarray | None:
-        """The weights (owned nodes) of the drag-weighted solve's preconditioner, None before it is built."""
-        return None if self.pressure.weighted is None else self.pressure.pc_weights
 
     def set_state(self, state: dict[str, np.ndarray], t: float) -> None:
         """Restore `get_state()` arrays (owned rows, in this rank's node order) at time t [s]."""
@@ -398,12 +401,13 @@ class VANSSolver:
         if "drag_rate" in state:  # the drag-number limit of the next step (absent: no limit for one step)
             self._drag_rates = np.asarray(state["drag_rate"], dtype=float).reshape(n).copy()
         if self.pressure.weighted is not None:  # the preconditioner the next weighted solve would have used
-            self.pressure.pc_weights = None  # none saved: built at the next solve
+            self.pressure.pc_weights = self.pressure.interp_weights = None  # none saved: built at the next solve
+            self.pressure.fresh_reuse = False
             if "pc_weights" in state:
-                w = self._weights.x.array
-                w[:n] = np.asarray(state["pc_weights"], dtype=float).reshape(n)
-                self._weights.x.scatter_forward()
-                self.pressure.restore_preconditioner(w)
+                w, interp = self._ghosted(state["pc_weights"]), None
+                if "pc_interp_weights" in state:  # refreshed keeping the interpolation of this full build
+                    interp = self._ghosted(state["pc_interp_weights"])
+                self.pressure.restore_preconditioner(w, interp, fresh="pc_fresh" in state)
         self.pressure.x.array[:] = state["phi"]
         self.pressure.x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         self.t = float(t)
