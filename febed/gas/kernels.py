@@ -1,7 +1,8 @@
 """Numba kernels of the node-based gas step: sparse row loops over the constant nodal operators.
 
 Every kernel loops over the *owned* rows of a CSR structure whose columns are local node indices
-(owned + ghost); the caller refreshes the ghost values afterwards. The per-entry coefficients are those of
+(owned + ghost), the momentum sweep over the same entries by edge (`febed.gas.edges`); the caller refreshes
+the ghost values afterwards. The per-entry coefficients are those of
 `febed.gas.operators.NodalOperators` (for row i, column j):
 
 * `grad[k, d]  = ∫ φ_i ∂_d φ_j dx`  (Galerkin gradient; its rows sum to zero),
@@ -26,17 +27,15 @@ from numba import njit
 ROWS = {"reassoc", "contract"}
 
 
-def momentum_rhs(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, out):
+def momentum_rhs(edges, q, u, gradp, nu, rho, half_dt_tg, out):
     """Explicit momentum right-hand side per node [N]: −ρ∇·(q⊗u) − ∇p + ∇·(ν∇u) + Taylor-Galerkin term.
 
-    The convection is in skew-symmetric group form (see the comment above `_rhs3`).
+    The convection is in skew-symmetric group form (see the comment above `_edges3`). One pass over the
+    operators' entries by edge (`febed.gas.edges.EdgeOperators`).
 
     Args:
-        indptr: CSR row pointers (owned nodes).
-        indices: local column indices (owned + ghost nodes).
-        grad: (nnz, gdim) Galerkin gradient coefficients [m^(d-1)].
-        tens: (nnz, ntens) second-derivative coefficients [m^(d-2)].
-        q: (n_local, gdim) superficial velocity ε u [m/s].
+        edges: the `EdgeOperators` of the nodal operators (`NodalOperators.edges`).
+        q: (n_local, gdim) superficial velocity ε u [m/s] (extended: owned, ghost and extra columns).
         u: (n_local, gdim) interstitial velocity [m/s].
         gradp: (n_owned, gdim) Galerkin pressure gradient Σ_j grad_ij p_j [N].
         nu: (n_local,) nodal viscous coefficient ε (μ + ρ ν_t) [Pa s].
@@ -44,78 +43,127 @@ def momentum_rhs(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, 
         half_dt_tg: Δt/2 if the Taylor-Galerkin streamline term is on, else 0 [s].
         out: (n_owned, gdim) result.
     """
-    kernel = _rhs3 if q.shape[1] == 3 else _rhs2
-    kernel(indptr, indices, grad, tens, q, u, gradp, nu, rho, half_dt_tg, out)
+    e = edges
+    kernel = _edges3 if q.shape[1] == 3 else _edges2
+    kernel(e.ei, e.ej, e.g_ij, e.g_ji, e.tens, e.g_diag, e.oi, e.oj, e.o_grad, e.o_tens, q, u, gradp, nu, rho,
+           half_dt_tg, out)  # fmt: skip
 
 
 # seed 001 eq 36, explicit part: the convection −ρ∇·(q⊗u) in skew-symmetric nodal-product (group) form
 # ½ Σ_j (grad_ij·u_j + grad_ij·u_i) q_j + ½ q_i Σ_j grad_ij·u_j  (= ½∇·(q⊗u) + ½u·∇q + ½q∇·u, consistent
 # with ∇·(q⊗u) for any ∇·u, and energy-neutral for divergence-free u); the viscous stress ∇·(ε μ_eff ∇u)
-# and the Taylor-Galerkin (Lax-Wendroff)
-# streamline term ρ Δt/2 ∇·(ū ū·∇q), which cancels the anti-diffusion of the forward-Euler convection
-# step, both in edge form with edge-averaged coefficients. Written out per dimension (scalar accumulators
-# are ~5x faster in Numba than small-array loops).
+# and the Taylor-Galerkin (Lax-Wendroff) streamline term ρ Δt/2 ∇·(ū ū·∇q), which cancels the anti-diffusion
+# of the forward-Euler convection step, both in edge form with edge-averaged coefficients: the term of the
+# edge (i, j) in row j is minus that in row i. Each edge i < j of two owned nodes is visited once and adds to
+# both rows; the entries whose column is not such a node (ghost and extra columns) add to their row only; the
+# ½ q_i Σ_j grad_ij·u_j term and the pressure gradient are added last. Written out per dimension (scalar
+# accumulators are ~5x faster in Numba than small-array loops).
 @njit(cache=True, fastmath=ROWS)
-def _rhs3(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragma: no cover
-    n = indptr.size - 1
+def _edges3(ei, ej, gij, gji, tens, gd, oi, oj, og, ot, q, u, gradp, nu, rho, hdt, out):  # pragma: no cover
+    n = out.shape[0]
+    dv = np.empty(n)  # Σ_j grad_ij·u_j
     for i in range(n):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
+        sc = gd[i, 0] * u[i, 0] + gd[i, 1] * u[i, 1] + gd[i, 2] * u[i, 2]
+        dv[i] = sc
+        s = rho * sc
+        out[i, 0] = -s * q[i, 0]
+        out[i, 1] = -s * q[i, 1]
+        out[i, 2] = -s * q[i, 2]
+    for e in range(ei.size):
+        i = ei[e]
+        j = ej[e]
         ui0, ui1, ui2 = u[i, 0], u[i, 1], u[i, 2]
+        uj0, uj1, uj2 = u[j, 0], u[j, 1], u[j, 2]
         qi0, qi1, qi2 = q[i, 0], q[i, 1], q[i, 2]
-        nui = nu[i]
-        dv = 0.0
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            uj0, uj1, uj2 = u[j, 0], u[j, 1], u[j, 2]
-            sc = grad[k, 0] * uj0 + grad[k, 1] * uj1 + grad[k, 2] * uj2
-            dv += sc
-            s = 0.5 * rho * (sc + grad[k, 0] * ui0 + grad[k, 1] * ui1 + grad[k, 2] * ui2)
-            t0, t1, t2 = tens[k, 0], tens[k, 1], tens[k, 2]
-            c = (t0 + t1 + t2) * 0.5 * (nui + nu[j])
-            b0 = 0.5 * (ui0 + uj0)
-            b1 = 0.5 * (ui1 + uj1)
-            b2 = 0.5 * (ui2 + uj2)
-            w = t0 * b0 * b0 + t1 * b1 * b1 + t2 * b2 * b2
-            w = rho * hdt * (w + tens[k, 3] * b0 * b1 + tens[k, 4] * b0 * b2 + tens[k, 5] * b1 * b2)
-            qj0, qj1, qj2 = q[j, 0], q[j, 1], q[j, 2]
-            a0 -= s * qj0 + c * (uj0 - ui0) + w * (qj0 - qi0)
-            a1 -= s * qj1 + c * (uj1 - ui1) + w * (qj1 - qi1)
-            a2 -= s * qj2 + c * (uj2 - ui2) + w * (qj2 - qi2)
-        dv *= 0.5 * rho
-        out[i, 0] = a0 - dv * qi0 - gradp[i, 0]
-        out[i, 1] = a1 - dv * qi1 - gradp[i, 1]
-        out[i, 2] = a2 - dv * qi2 - gradp[i, 2]
+        qj0, qj1, qj2 = q[j, 0], q[j, 1], q[j, 2]
+        b0, b1, b2 = 0.5 * (ui0 + uj0), 0.5 * (ui1 + uj1), 0.5 * (ui2 + uj2)
+        dv[i] += gij[e, 0] * uj0 + gij[e, 1] * uj1 + gij[e, 2] * uj2
+        dv[j] += gji[e, 0] * ui0 + gji[e, 1] * ui1 + gji[e, 2] * ui2
+        sij = rho * (gij[e, 0] * b0 + gij[e, 1] * b1 + gij[e, 2] * b2)
+        sji = rho * (gji[e, 0] * b0 + gji[e, 1] * b1 + gji[e, 2] * b2)
+        t0, t1, t2 = tens[e, 0], tens[e, 1], tens[e, 2]
+        c = (t0 + t1 + t2) * 0.5 * (nu[i] + nu[j])
+        w = t0 * b0 * b0 + t1 * b1 * b1 + t2 * b2 * b2
+        w = rho * hdt * (w + tens[e, 3] * b0 * b1 + tens[e, 4] * b0 * b2 + tens[e, 5] * b1 * b2)
+        d0 = c * (uj0 - ui0) + w * (qj0 - qi0)
+        d1 = c * (uj1 - ui1) + w * (qj1 - qi1)
+        d2 = c * (uj2 - ui2) + w * (qj2 - qi2)
+        out[i, 0] -= sij * qj0 + d0
+        out[i, 1] -= sij * qj1 + d1
+        out[i, 2] -= sij * qj2 + d2
+        out[j, 0] -= sji * qi0 - d0
+        out[j, 1] -= sji * qi1 - d1
+        out[j, 2] -= sji * qi2 - d2
+    for e in range(oi.size):
+        i = oi[e]
+        j = oj[e]
+        ui0, ui1, ui2 = u[i, 0], u[i, 1], u[i, 2]
+        uj0, uj1, uj2 = u[j, 0], u[j, 1], u[j, 2]
+        b0, b1, b2 = 0.5 * (ui0 + uj0), 0.5 * (ui1 + uj1), 0.5 * (ui2 + uj2)
+        dv[i] += og[e, 0] * uj0 + og[e, 1] * uj1 + og[e, 2] * uj2
+        s = rho * (og[e, 0] * b0 + og[e, 1] * b1 + og[e, 2] * b2)
+        t0, t1, t2 = ot[e, 0], ot[e, 1], ot[e, 2]
+        c = (t0 + t1 + t2) * 0.5 * (nu[i] + nu[j])
+        w = t0 * b0 * b0 + t1 * b1 * b1 + t2 * b2 * b2
+        w = rho * hdt * (w + ot[e, 3] * b0 * b1 + ot[e, 4] * b0 * b2 + ot[e, 5] * b1 * b2)
+        out[i, 0] -= s * q[j, 0] + c * (uj0 - ui0) + w * (q[j, 0] - q[i, 0])
+        out[i, 1] -= s * q[j, 1] + c * (uj1 - ui1) + w * (q[j, 1] - q[i, 1])
+        out[i, 2] -= s * q[j, 2] + c * (uj2 - ui2) + w * (q[j, 2] - q[i, 2])
+    for i in range(n):
+        d = 0.5 * rho * dv[i]
+        out[i, 0] -= d * q[i, 0] + gradp[i, 0]
+        out[i, 1] -= d * q[i, 1] + gradp[i, 1]
+        out[i, 2] -= d * q[i, 2] + gradp[i, 2]
 
 
 @njit(cache=True, fastmath=ROWS)
-def _rhs2(indptr, indices, grad, tens, q, u, gradp, nu, rho, hdt, out):  # pragma: no cover
-    n = indptr.size - 1
+def _edges2(ei, ej, gij, gji, tens, gd, oi, oj, og, ot, q, u, gradp, nu, rho, hdt, out):  # pragma: no cover
+    n = out.shape[0]
+    dv = np.empty(n)
     for i in range(n):
-        a0 = 0.0
-        a1 = 0.0
+        sc = gd[i, 0] * u[i, 0] + gd[i, 1] * u[i, 1]
+        dv[i] = sc
+        s = rho * sc
+        out[i, 0] = -s * q[i, 0]
+        out[i, 1] = -s * q[i, 1]
+    for e in range(ei.size):
+        i = ei[e]
+        j = ej[e]
         ui0, ui1 = u[i, 0], u[i, 1]
+        uj0, uj1 = u[j, 0], u[j, 1]
         qi0, qi1 = q[i, 0], q[i, 1]
-        nui = nu[i]
-        dv = 0.0
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            uj0, uj1 = u[j, 0], u[j, 1]
-            sc = grad[k, 0] * uj0 + grad[k, 1] * uj1
-            dv += sc
-            s = 0.5 * rho * (sc + grad[k, 0] * ui0 + grad[k, 1] * ui1)
-            t0, t1 = tens[k, 0], tens[k, 1]
-            c = (t0 + t1) * 0.5 * (nui + nu[j])
-            b0 = 0.5 * (ui0 + uj0)
-            b1 = 0.5 * (ui1 + uj1)
-            w = rho * hdt * (t0 * b0 * b0 + t1 * b1 * b1 + tens[k, 2] * b0 * b1)
-            qj0, qj1 = q[j, 0], q[j, 1]
-            a0 -= s * qj0 + c * (uj0 - ui0) + w * (qj0 - qi0)
-            a1 -= s * qj1 + c * (uj1 - ui1) + w * (qj1 - qi1)
-        dv *= 0.5 * rho
-        out[i, 0] = a0 - dv * qi0 - gradp[i, 0]
-        out[i, 1] = a1 - dv * qi1 - gradp[i, 1]
+        qj0, qj1 = q[j, 0], q[j, 1]
+        b0, b1 = 0.5 * (ui0 + uj0), 0.5 * (ui1 + uj1)
+        dv[i] += gij[e, 0] * uj0 + gij[e, 1] * uj1
+        dv[j] += gji[e, 0] * ui0 + gji[e, 1] * ui1
+        sij = rho * (gij[e, 0] * b0 + gij[e, 1] * b1)
+        sji = rho * (gji[e, 0] * b0 + gji[e, 1] * b1)
+        t0, t1 = tens[e, 0], tens[e, 1]
+        c = (t0 + t1) * 0.5 * (nu[i] + nu[j])
+        w = rho * hdt * (t0 * b0 * b0 + t1 * b1 * b1 + tens[e, 2] * b0 * b1)
+        d0 = c * (uj0 - ui0) + w * (qj0 - qi0)
+        d1 = c * (uj1 - ui1) + w * (qj1 - qi1)
+        out[i, 0] -= sij * qj0 + d0
+        out[i, 1] -= sij * qj1 + d1
+        out[j, 0] -= sji * qi0 - d0
+        out[j, 1] -= sji * qi1 - d1
+    for e in range(oi.size):
+        i = oi[e]
+        j = oj[e]
+        ui0, ui1 = u[i, 0], u[i, 1]
+        uj0, uj1 = u[j, 0], u[j, 1]
+        b0, b1 = 0.5 * (ui0 + uj0), 0.5 * (ui1 + uj1)
+        dv[i] += og[e, 0] * uj0 + og[e, 1] * uj1
+        s = rho * (og[e, 0] * b0 + og[e, 1] * b1)
+        t0, t1 = ot[e, 0], ot[e, 1]
+        c = (t0 + t1) * 0.5 * (nu[i] + nu[j])
+        w = rho * hdt * (t0 * b0 * b0 + t1 * b1 * b1 + ot[e, 2] * b0 * b1)
+        out[i, 0] -= s * q[j, 0] + c * (uj0 - ui0) + w * (q[j, 0] - q[i, 0])
+        out[i, 1] -= s * q[j, 1] + c * (uj1 - ui1) + w * (q[j, 1] - q[i, 1])
+    for i in range(n):
+        d = 0.5 * rho * dv[i]
+        out[i, 0] -= d * q[i, 0] + gradp[i, 0]
+        out[i, 1] -= d * q[i, 1] + gradp[i, 1]
 
 
 @njit(cache=True, fastmath=ROWS)

@@ -26,6 +26,8 @@ import dolfinx.fem.petsc
 import numpy as np
 import ufl
 
+from febed.gas.edges import EdgeOperators, edge_operators
+
 
 def nodal_family(mesh) -> str:
     """The family of the nodal element: "Q" on quadrilaterals/hexahedra, "Lagrange" on simplices."""
@@ -141,6 +143,11 @@ class NodalOperators:
     def gdim(self) -> int:
         """Geometric dimension."""
         return self.grad.shape[1]
+
+    @cached_property
+    def edges(self) -> EdgeOperators:
+        """The entries of `grad` and `tens` by edge, for the momentum sweep (`febed.gas.edges`)."""
+        return edge_operators(self.indptr, self.indices, self.grad, self.tens)
 
     @cached_property
     def laplacian(self) -> np.ndarray:

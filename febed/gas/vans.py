@@ -598,9 +598,7 @@ class VANSSolver:
         else:
             hdt = 0.5 * dt if par.taylor_galerkin else 0.0
             q, u = self._ext("q", self._q), self._ext("u", self._u)
-            kernels.momentum_rhs(
-                ops.indptr, ops.indices, ops.grad, ops.tens, q, u, self.gp_owned, nu, par.density, hdt, self._rhs
-            )
+            kernels.momentum_rhs(ops.edges, q, u, self.gp_owned, nu, par.density, hdt, self._rhs)
             K = self._with_backflow(K)
             kernels.predictor_update(
                 self.q, self._rhs, ops.mass, self.eps, K, Kv, force, self.g, par.density, dt, q_star[: self.n_owned]
@@ -649,9 +647,7 @@ class VANSSolver:
         eps = self._ext("eps", self._eps)
         q_m = self.q[:n].copy()
         for m in range(k):
-            kernels.momentum_rhs(
-                ops.indptr, ops.indices, ops.grad, ops.tens, q, u, self.gp_owned, nu, par.density, hdt, self._rhs
-            )
+            kernels.momentum_rhs(ops.edges, q, u, self.gp_owned, nu, par.density, hdt, self._rhs)
             kernels.predictor_update(
                 q_m, self._rhs, ops.mass, self.eps, K, Kv, force, self.g, par.density, sub, q_star[:n]
             )
