@@ -25,7 +25,8 @@ before the output folder is touched. It
     ranks (one-core throughputs measured on the seed beds); with `gas.convection_substeps` the estimated gas
     step spans m convective steps, and each extra explicit sub-step adds `PREDICTOR_SHARE` of a gas step;
     refused when even `FAST` times faster it would exceed `MAX_WALL_DAYS`;
-  - memory: `PARTICLE_BYTES` per particle and `NODE_BYTES` per mesh node, plus `WHOLE_MESH_BYTES` per node
+  - memory: `RANK_BYTES` per process, `PARTICLE_BYTES` per particle and `NODE_BYTES` per mesh node (the peak
+    resident memory of the seed cases), plus `WHOLE_MESH_BYTES` per node
     on every rank of a coupled run whose particles are shared by work (each rank holds the whole mesh's
     coupling arrays); refused when a quarter of it exceeds the physical memory of the ranks' machine;
   - an inlet velocity whose CFL step on the mean cell is below `dt_min` (the gas step could not follow it),
@@ -66,8 +67,15 @@ FAST = 5.0  # the optimistic estimate assumes throughputs this many times the me
 # pseudo-2D beds (seed 001, U_f = 1.2 m/s, 2.2 U_mf) the median over 0.1-6 s of max|u| was 3.4, 4.4 and 5.8 U_f on
 # the coarse, intermediate and fine meshes (faster jets resolved on finer cells).
 BED_GAS_SPEED = 5.0
-PARTICLE_BYTES = 2000.0  # memory per particle: arrays, neighbour lists, coupling records, output copies
-NODE_BYTES = 5000.0  # memory per mesh node: gas fields, matrices, preconditioners
+# Peak memory: `RANK_BYTES` per process (Python, DOLFINx, PETSc, the compiled kernels and forms), `NODE_BYTES` per
+# mesh node (gas fields, nodal operators, matrices, preconditioners; hexahedra) and `PARTICLE_BYTES` per particle
+# (arrays, neighbour lists, coupling records, output copies). Peak resident memory measured per process: the wang2d
+# bed 280 MB; C1 416 MB and C2 623 MB serially; C2 490-510 MB and C3 1.42-1.46 GB on each of 2 ranks; so about
+# 10 kB per node, 1 kB per particle and 0.3 GB per process (this estimate, for the whole run: 0.32, 0.40, 0.64,
+# 0.94 and 2.70 GB).
+RANK_BYTES = 300e6
+PARTICLE_BYTES = 1000.0
+NODE_BYTES = 10_000.0
 WHOLE_MESH_BYTES = 1000.0  # per node and rank with particle_partition = "work" (hexahedra 0.37 kB, tetrahedra more)
 GAS_MODES = ("cfd-dem", "gas")
 DEM_MODES = ("cfd-dem", "dem", "one-way")
@@ -401,7 +409,7 @@ def estimate(case: Case, md, bed, comm=MPI.COMM_WORLD) -> tuple[Estimate, list[s
         est.gas_steps = end / est.dt_gas
     if est.dt_dem:
         est.dem_steps = est.gas_steps * est.sub_steps if est.dt_gas else end / est.dt_dem
-    est.memory = est.particles * PARTICLE_BYTES + est.nodes * NODE_BYTES
+    est.memory = comm.size * RANK_BYTES + est.particles * PARTICLE_BYTES + est.nodes * NODE_BYTES
     if case.run.mode == "cfd-dem" and case.run.particle_partition == "work" and comm.size > 1:
         est.memory += est.nodes * WHOLE_MESH_BYTES * comm.size  # the whole mesh's coupling arrays on every rank
     gas_cost = GAS_SECONDS * (1.0 + PREDICTOR_SHARE * (est.convective - 1))

@@ -20,6 +20,7 @@ from febed.preflight import (
     NODE_BYTES,
     PARTICLE_BYTES,
     PREDICTOR_SHARE,
+    RANK_BYTES,
     WHOLE_MESH_BYTES,
     preflight,
 )
@@ -112,7 +113,8 @@ def test_particles_by_work_count_the_whole_mesh_on_every_rank(mpi_tmp_path):
             path.write_text(text.replace("[run]\n", f'[run]\nparticle_partition = "{p}"\n', 1))
     comm.barrier()
     by_mesh, by_work = (preflight(load_case(paths[p])).estimate for p in ("mesh", "work"))
-    assert by_mesh.memory == pytest.approx(by_mesh.particles * PARTICLE_BYTES + by_mesh.nodes * NODE_BYTES)
+    per_rank = comm.size * RANK_BYTES
+    assert by_mesh.memory == pytest.approx(per_rank + by_mesh.particles * PARTICLE_BYTES + by_mesh.nodes * NODE_BYTES)
     whole = by_work.nodes * WHOLE_MESH_BYTES * comm.size if comm.size > 1 else 0.0  # one rank: no second copy
     assert by_work.nodes == by_mesh.nodes == 341  # 10 x 30 cells of the box
     assert by_work.memory - by_mesh.memory == pytest.approx(whole, rel=1e-12, abs=1e-6)

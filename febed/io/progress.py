@@ -16,8 +16,11 @@ import collections
 import logging
 import math
 import os
+import resource
 import sys
 import time
+
+from mpi4py import MPI
 
 #: Environment variables set by MPI launchers in the processes they start (Open MPI, PMIx, MPICH/Hydra, Slurm).
 LAUNCHER_VARIABLES = ("OMPI_COMM_WORLD_SIZE", "PMIX_RANK", "PMI_RANK", "SLURM_STEP_ID")
@@ -29,6 +32,20 @@ def clock(seconds: float) -> str:
         return "?"
     seconds = int(seconds)
     return f"{seconds // 3600}h{seconds // 60 % 60:02d}m{seconds % 60:02d}s"
+
+
+def peak_memory(comm) -> str:
+    """The processes' peak resident memory, for a run's last log line: the sum and the largest (collective)."""
+    try:
+        mine = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0  # kB on Linux
+    except OSError:
+        mine = float("nan")
+    total, largest = comm.allreduce(mine), comm.allreduce(mine, op=MPI.MAX)
+    if not math.isfinite(total):
+        return "peak memory unknown"
+    if comm.size == 1:
+        return f"peak memory {total / 1e9:.2f} GB"
+    return f"peak memory {total / 1e9:.2f} GB ({largest / 1e9:.2f} GB on the largest of {comm.size} ranks)"
 
 
 def launcher_is_terminal(env=None, launcher_pid: int | None = None) -> bool:

@@ -46,6 +46,7 @@ from febed.dem.solver import DEMFailure, StopRequested
 from febed.io.fields import FieldWriter
 from febed.io.particles import ParticleWriter
 from febed.io.probes import ProbeFile
+from febed.io.progress import peak_memory
 from febed.meshing import load_case_mesh
 from febed.parallel.exchange import balance_line
 from febed.runs.lifecycle import (
@@ -386,6 +387,6 @@ def run_coupled(case, outdir, log, comm=MPI.COMM_WORLD, restart=None):
     log.info(
         f"done: {s.steps} gas steps to t = {s.t:.5f} s in {total:.1f} s "
         f"(DEM {t.dem:.1f} s, coupling {t.coupling:.1f} s, gas {t.gas:.1f} s, output {t.output:.1f} s); "
-        f"{left} particles left through the outlet; probes in {run.outdir / 'probes.csv'}"
+        f"{left} particles left through the outlet; {peak_memory(comm)}; probes in {run.outdir / 'probes.csv'}"
     )
     return run

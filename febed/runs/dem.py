@@ -27,6 +27,7 @@ from febed.bed import build_dem, dem_from_case, particle_exchange, walls_from_me
 from febed.dem.particles import Particles
 from febed.dem.solver import DEM, DEMFailure, StopRequested
 from febed.io.particles import ParticleWriter
+from febed.io.progress import peak_memory
 from febed.io.state import dem_arrays, load_dem
 from febed.meshing import load_case_mesh
 from febed.parallel.exchange import balance_line
@@ -194,7 +195,8 @@ def run(case, outdir, log, comm=MPI.COMM_WORLD, restart=None) -> DEM:
     left = comm.allreduce(r.left)
     log.info(
         f"DEM done: t = {dem.time:.5f} s, {dem.steps} steps in {time.time() - wall0:.1f} s; "
-        f"max overlap {100 * dem.global_max(dem.max_overlap):.3f} % d; {left} particles left the domain"
+        f"max overlap {100 * dem.global_max(dem.max_overlap):.3f} % d; {left} particles left the domain; "
+        f"{peak_memory(comm)}"
     )
     if dem.exchange is not None:
         t = dem.exchange.timers

@@ -29,6 +29,7 @@ import numpy as np
 from febed.gas.pressure import PressureSolveError
 from febed.gas.vans import VANSSolver
 from febed.io.fields import FieldWriter
+from febed.io.progress import peak_memory
 from febed.io.state import gas_arrays, restore_gas
 from febed.meshing import load_case_mesh
 from febed.runs.lifecycle import (
@@ -209,5 +210,5 @@ def run(case, outdir, log: logging.Logger | None = None, eps=None, mesh_data=Non
         f"boundaries {', '.join(f'{n}={b.type}' for n, b in s.bc.specs.items())}, to t = {case.run.end_time:g} s"
     )
     run_to_end(r, case.run.end_time)
-    log.info(f"gas: {r.steps} steps to t = {s.t:.5g} s; fields in {r.writer.path}")
+    log.info(f"gas: {r.steps} steps to t = {s.t:.5g} s; {peak_memory(comm)}; fields in {r.writer.path}")
     return s

@@ -8,7 +8,7 @@ import subprocess
 
 import pytest
 
-from febed.io.progress import Progress, RateMeter, launcher_is_terminal
+from febed.io.progress import Progress, RateMeter, launcher_is_terminal, peak_memory
 
 
 def test_rate_is_measured_over_the_recent_window_not_since_the_start():
@@ -79,3 +79,21 @@ def test_live_line_only_when_the_launchers_output_is_a_terminal(tmp_path, launch
     assert not p.live and batch.getvalue() == ""
     assert "t = 0.1 / 1 s" in (tmp_path / "febed.log").read_text()
     assert Progress(log, 0, Tty(), env=mpi, launcher_pid=to_pty).live
+
+
+@pytest.mark.mpi
+def test_peak_memory_is_the_processes_resident_memory_in_gigabytes():
+    # ru_maxrss is in kB on Linux: this process (Python, NumPy, MPI) holds between 20 MB and the machine's memory,
+    # and the sum over the ranks is at least the largest rank's
+    import re
+
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    text = peak_memory(comm)
+    numbers = [float(x) for x in re.findall(r"([0-9.]+) GB", text)]
+    physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
+    assert len(numbers) == (1 if comm.size == 1 else 2), text
+    assert 0.02 * comm.size <= numbers[0] <= physical, text
+    if comm.size > 1:
+        assert numbers[1] <= numbers[0] and f"of {comm.size} ranks" in text
