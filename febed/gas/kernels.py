@@ -35,10 +35,10 @@ def momentum_rhs(edges, q, u, gradp, nu, rho, half_dt_tg, out):
 
     Args:
         edges: the `EdgeOperators` of the nodal operators (`NodalOperators.edges`).
-        q: (n_local, gdim) superficial velocity ε u [m/s] (extended: owned, ghost and extra columns).
-        u: (n_local, gdim) interstitial velocity [m/s].
+        q: (n_ext, gdim) superficial velocity ε u [m/s] at the owned, ghost and extra column nodes.
+        u: (n_ext, gdim) interstitial velocity [m/s].
         gradp: (n_owned, gdim) Galerkin pressure gradient Σ_j grad_ij p_j [N].
-        nu: (n_local,) nodal viscous coefficient ε (μ + ρ ν_t) [Pa s].
+        nu: (n_ext,) nodal viscous coefficient ε (μ + ρ ν_t) [Pa s].
         rho: gas density [kg/m^3].
         half_dt_tg: Δt/2 if the Taylor-Galerkin streamline term is on, else 0 [s].
         out: (n_owned, gdim) result.

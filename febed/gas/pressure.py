@@ -67,8 +67,8 @@ REFRESH_ITERATIONS = 8
 # A GAMG preconditioner is refreshed by keeping the interpolation of its last full build and recomputing only its
 # coarse operators and smoothers from the current L_w (`pc_gamg_reuse_interpolation`): on 2 ranks 10.5 against
 # 68 ms on the seed-001 intermediate mesh, with the same iterations after it; on the fine mesh (C3) a 0.01 s window
-# of the bubbling bed took 10 % less wall time (the gas's pressure step 7.9 against 11.9 s, 9 refreshes in 80
-# gas steps either way, 7.96 against 7.94 iterations per solve). A refresh whose first solve still needs more
+# of the bubbling bed took 0.77-0.86 of the wall time (9 refreshes in 80 gas steps either way, 7.96 against 7.94
+# iterations per solve; docs/performance.md). A refresh whose first solve still needs more
 # than REFRESH_ITERATIONS is followed by a full build. The same interpolation and current L_w give the same
 # preconditioner whatever refreshes came between, so a restart rebuilds it from the two weights
 # (`restore_preconditioner`).
