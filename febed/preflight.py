@@ -57,8 +57,13 @@ from febed.schema import BOUNDARY
 BED_RTOL = 1e-6  # bed diameters and densities match the case's to this relative tolerance
 MAX_SUBSTEPS = 100_000  # DEM sub-steps per gas step (seed cases: 10-500)
 MAX_WALL_DAYS = 30.0  # refuse when the optimistic wall-time estimate exceeds this
-DEM_SECONDS = 2.5e-7  # wall seconds per particle per DEM step, coupling included (one core, measured 1.6-3.1e-7)
-GAS_SECONDS = 1.5e-6  # wall seconds per mesh node per gas step (one core, measured 1.2-1.9e-6)
+# One core: wall seconds per particle per DEM step, coupling included (measured 0.93e-7 on C2's bubbling bed, 1.0e-7
+# on C1, 1.7e-7 on the wang2d bed), and per mesh node per gas step (1.1e-6 on C2, hexahedra; 0.9e-6 on C3 with
+# one convective sub-step; 0.3e-6 on the wang2d quadrilaterals). The estimate then gives the wang2d bed's DEM (tm1)
+# 0.94 and on 2 ranks C1 0.88, C2 1.09 and C3 0.83-0.86 of their measured wall times; it assumes perfect scaling,
+# and 2-rank runs are at 80-85 % of it.
+DEM_SECONDS = 1.3e-7
+GAS_SECONDS = 1.1e-6
 # The explicit predictor's share of a gas step, paid again by each extra convective sub-step (seed 001's C3 on
 # 2 ranks: 0.28 of the gas with one sub-step; 0.50 with 3.2 sub-steps on average, k = 4)
 PREDICTOR_SHARE = 0.3
