@@ -370,13 +370,6 @@ class VANSSolver:
             raise ValueError("eps (void fraction) must lie in (0, 1] at every node")
 
     # ------------------------------------------------------------------------------------ checkpoint
-    def _ghosted(self, owned) -> np.ndarray:
-        """Values at the owned nodes with their ghost nodes' (a copy; through the weights' function)."""
-        f = self._weights
-        f.x.array[: self.n_owned] = np.asarray(owned, dtype=float).reshape(self.n_owned)
-        f.x.scatter_forward()
-        return f.x.array.copy()
-
     def get_state(self) -> dict[str, np.ndarray]:
         """Everything the next step reads, over the owned nodes: q, p, ε, ∇p, Gp, the last increment φ (and K/(ρε))."""
         n = self.n_owned
@@ -404,9 +397,9 @@ class VANSSolver:
             self.pressure.pc_weights = self.pressure.interp_weights = None  # none saved: built at the next solve
             self.pressure.fresh_reuse = False
             if "pc_weights" in state:
-                w, interp = self._ghosted(state["pc_weights"]), None
+                w, interp = self._local(state["pc_weights"], "pc_weights"), None
                 if "pc_interp_weights" in state:  # refreshed keeping the interpolation of this full build
-                    interp = self._ghosted(state["pc_interp_weights"])
+                    interp = self._local(state["pc_interp_weights"], "pc_interp_weights")
                 self.pressure.restore_preconditioner(w, interp, fresh="pc_fresh" in state)
         self.pressure.x.array[:] = state["phi"]
         self.pressure.x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
