@@ -27,6 +27,10 @@ run.particle_partition=work --tag TAG_work`):
     mpirun -n 2 python benchmarks/scaling_measure.py --pingpong                   # shared-memory figures
     python benchmarks/scaling_projection.py --run RUN_DIR [--from 1.2 --to 1.5] [--bandwidth 10e9 --latency 2e-6]
 
+The check of the model (docs/scaling.md) is made in rounds, each a serial, a 2-rank and a concurrent window of
+the same checkpoint tagged alike (`--sim-time 0.02 --tag _r1`, and `--concurrent --tag _r1_concurrent` on 2
+ranks); `--check _r1,_r2,...` checks every round with its own costs and prints the median gap.
+
 RUN_DIR is a C2 run folder with particle snapshots over the census window (`--from`, `--to`) and its checkpoint
 at the window's end, which the measurements continue (`febed run demos/pseudo2d/C2.toml --set run.end_time=1.5
 --set output.particle_interval=0.01`: snapshots every 0.01 s). The census is cached in
@@ -172,7 +176,8 @@ def load_measured(name: str, P: int, tag: str = "") -> dict | None:
 
 
 def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, loaded: dict | None = None,
-               calls: tuple[dict, dict] | None = None, owners: dict | None = None) -> dict:  # fmt: skip
+               calls: tuple[dict, dict] | None = None, owners: dict | None = None,
+               iter_of: dict | None = None) -> dict:  # fmt: skip
     """Single-core costs per unit of work from the serial measurements (CPU seconds of each phase).
 
     m1: the serial run with its default pressure solver (a Cholesky factorisation on meshes of at most 50,000
@@ -184,7 +189,8 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
     applied on several ranks); calls: the exchange calls timed serially and on 2 ranks (`--calls`), whose
     difference is what each costs on several ranks beyond one process (`call_s`); owners: the window coupled
     the way `particle_partition = "work"` couples, on one process (`--owners`), its coupling cost per particle
-    that of the "nodal" decomposition.
+    that of the "nodal" decomposition; iter_of: the serial window m1_iter was measured beside (m1 when None),
+    so that another window m1 (a check's) takes m1_iter's gas cost as a ratio to its own.
     """
     r = m1["per_rank"][0]
     sim = r["t1"] - r["t0"]
@@ -196,7 +202,8 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
     gas_iter = split["gas"]
     if m1_iter is not None:
         ri = m1_iter["per_rank"][0]
-        gas_iter = ri["split"]["gas"] * r["gas_steps"] / ri["gas_steps"]
+        rb = (iter_of or m1)["per_rank"][0]
+        gas_iter = split["gas"] * (ri["split"]["gas"] / ri["gas_steps"]) / (rb["split"]["gas"] / rb["gas_steps"])
     keyed = locate = coo = 0.0
     entries = 0
     if m1_rebuild is not None:
@@ -279,13 +286,24 @@ def solver_counts(real: dict | None = None, path: Path = SOLVER_COUNTS) -> dict 
     return out
 
 
+# `--concurrent` starts each phase with a barrier (`scaling_measure._barriers`): the wait recorded under a phase's
+# name is for the other core to end the phase before it (the step's order: coupling, DEM, coupling, gas).
+WAITED_ON = {"dem": ("coupling",), "coupling": ("dem", "gas"), "gas": ("untimed",)}
+
+
 def load_factor(m1: dict, loaded: dict | None) -> dict:
-    """Per phase, a core's CPU seconds while every core works (`loaded`, `--concurrent`) over m1's alone."""
+    """Per phase, a core's CPU seconds while every core works (`loaded`, `--concurrent`) over m1's alone.
+
+    The cores start each phase together, as the ranks of a run do, so a phase's time on a busy core is its
+    own work and the wait at its end for the other core to finish the same work (the barrier before the next
+    phase); the barrier at its own start is the previous phase's.
+    """
     factor = {"dem": 1.0, "coupling": 1.0, "gas": 1.0}
     if loaded is not None:
         r = m1["per_rank"][0]
         for k in factor:
-            own = np.mean([q["split"][k] - q["waits"][k] for q in loaded["per_rank"]])  # less the barriers
+            own = np.mean([q["split"][k] - q["waits"][k] + sum(q["waits"][j] for j in WAITED_ON[k])
+                           for q in loaded["per_rank"]])  # fmt: skip
             factor[k] = float(own / r["split"][k] * r["gas_steps"] / loaded["per_rank"][0]["gas_steps"])
     return factor
 
@@ -393,7 +411,8 @@ def main() -> None:
     ap.add_argument(
         "--check",
         default="",
-        help="tag of the check's measurements: measured_C2_P1<tag>.json (serial), measured_C2_P2<tag>.json (the "
+        help="tag of the check's measurements: measured_C2_P1<tag>.json (serial, whose costs per unit of work the "
+        "check's model takes), measured_C2_P2<tag>.json (the "
         "mesh partition), and if present measured_C2_P2<tag>_work.json (particle_partition = work) and "
         "measured_C2_P2<tag>_concurrent.json (the busy cores' slow-down measured with them)",
     )
@@ -434,12 +453,14 @@ def main() -> None:
         if load_measured("C2", P, tag) is None:
             print(f"note: no {OUT / f'measured_C2_P{P}{tag}.json'}: {what}; see the commands in the docstring")
     calls = load_measured("C2", 1, "_calls"), load_measured("C2", 2, "_calls")
-    cost = unit_costs(
-        m1, load_measured("C2", 1, "_gamg"), load_measured("C2", 1, "_rebuild"),
-        load_measured("C2", 2, "_concurrent"), calls if None not in calls else None, load_measured("C2", 1, "_owners"),
+    inputs = (
+        load_measured("C2", 1, "_gamg"), load_measured("C2", 1, "_rebuild"), load_measured("C2", 2, "_concurrent"),
+        calls if None not in calls else None, load_measured("C2", 1, "_owners"),
     )  # fmt: skip
+    cost = unit_costs(m1, *inputs)
     cost["h_ratio"] = float(census["C2/h_min"] / census["C3/h_min"])  # gas steps per second, fine / intermediate
-    real = load_measured("C2", 2, args.check) if args.check else m2
+    tags = args.check.split(",") if args.check else [""]
+    real = load_measured("C2", 2, tags[0]) if args.check else m2
     cost["solver"] = solver_counts(real)
     if cost["solver"] is None:
         return
@@ -506,21 +527,62 @@ def main() -> None:
                     )
             result[_result_key(variant)][name] = rows
     if census.get("checkpoint") is not None and bool(census["checkpoint"]):
-        c1 = load_measured("C2", 1, args.check) or m1
-        c2 = load_measured("C2", 2, args.check) if args.check else m2
-        check_cost = cost
-        loaded = load_measured("C2", 2, f"{args.check}_concurrent") if args.check else None
-        if loaded is not None:  # the slow-down of a busy core measured with the check's own windows
-            check_cost = {**cost, "load_factor": load_factor(c1, loaded)}
-            lf = check_cost["load_factor"]
-            print(f"\nthe check's own slow-down of a busy core: DEM {lf['dem']:.3f}, coupling {lf['coupling']:.3f}, "
-                  f"gas {lf['gas']:.3f}")  # fmt: skip
-        validate(census, check_cost, net, c1, c2, result)
-        work = load_measured("C2", 2, f"{args.check}_work")
-        if work is not None and "nodal" in variants:
-            validate_work(census, check_cost, net, c1, work, result)
+        rounds = {}
+        for tag in tags:
+            if len(tags) > 1:
+                print(f"\n== round {tag}")
+            check_round(census, cost, inputs, net, m1, m2, tag, variants, result)
+            if "measured" in result["validation"]:
+                rounds[tag] = dict(result["validation"])
+        if len(rounds) > 1:
+            summarize_rounds(rounds, result)
     plot(result)
     (OUT / "scaling_projection.json").write_text(json.dumps(result, indent=1, default=float))
+
+
+def check_round(census, cost, inputs, net, m1, m2, tag, variants, result) -> None:
+    """The check of one round `tag` (its serial, 2-rank and concurrent windows): the model with the round's own
+    costs per unit of work and busy-core slow-down, against its 2-rank window (`validate`, `validate_work`)."""
+    c1 = load_measured("C2", 1, tag) or m1
+    c2 = load_measured("C2", 2, tag) if tag else m2
+    check_cost = cost
+    if c1 is not m1:  # the costs per unit of work of the code and window the check measured
+        check_cost = {**unit_costs(c1, *inputs, iter_of=m1), **{k: cost[k] for k in ("h_ratio", "solver")}}
+        print(
+            f"\nthe check's own serial window: {check_cost['us_per_pair_step'] * 1e3:.1f} ns per force pair "
+            f"per DEM step, {check_cost['us_per_node_step_iter']:.3f} µs per gas node per gas step (CG + "
+            f"GAMG), {check_cost['us_per_particle_step']:.3f} µs per particle per gas step"
+        )
+    loaded = load_measured("C2", 2, f"{tag}_concurrent") if tag else None
+    if loaded is not None:  # the slow-down of a busy core measured with the check's own windows
+        check_cost = {**check_cost, "load_factor": load_factor(c1, loaded)}
+        lf = check_cost["load_factor"]
+        print(f"\nthe check's own slow-down of a busy core: DEM {lf['dem']:.3f}, coupling {lf['coupling']:.3f}, "
+              f"gas {lf['gas']:.3f}")  # fmt: skip
+    validate(census, check_cost, net, c1, c2, result)
+    result["validation"]["load_factor"] = check_cost["load_factor"]
+    work = load_measured("C2", 2, f"{tag}_work") if tag else None
+    if work is not None and "nodal" in variants:
+        validate_work(census, check_cost, net, c1, work, result)
+
+
+def summarize_rounds(rounds: dict, result) -> None:
+    """The check over several rounds: each round's model and measured whole step, the median and range of the gap."""
+    gaps = {t: 100 * (v["model"]["total"] - v["measured"]["total"]) for t, v in rounds.items()}
+    print("\ncheck over the rounds (whole step, 1 -> 2 ranks):")
+    for t, v in rounds.items():
+        lf = v["load_factor"]
+        print(
+            f"  {t}: measured {v['measured']['total']:.1%}, model {v['model']['total']:.1%} ({gaps[t]:+.1f} points); "
+            f"busy core DEM {lf['dem']:.3f}, coupling {lf['coupling']:.3f}, gas {lf['gas']:.3f}"
+        )
+    g = np.array(list(gaps.values()))
+    within = int(np.sum(np.abs(g) <= 5.0))
+    print(
+        f"check: model - measured over {g.size} rounds: median {np.median(g):+.1f} points, from {g.min():+.1f} to "
+        f"{g.max():+.1f}; within 5 points in {within} of {g.size}"
+    )
+    result["validation_rounds"] = {"gaps": gaps, "median": float(np.median(g)), "within_5": within}
 
 
 def _result_key(variant: str) -> str:

@@ -1,4 +1,5 @@
-"""benchmarks/scaling_projection.py: the cores' pace of a 2-rank window from its probes (`core_pace`)."""
+"""benchmarks/scaling_projection.py: the cores' pace of a 2-rank window from its probes (`core_pace`), a busy
+core's slow-down from the concurrent window (`load_factor`) and the check's costs from its own window."""
 
 from __future__ import annotations
 
@@ -64,3 +65,53 @@ def test_windows_without_probes_give_none(projection):
     m1, m2 = window([1e-4] * 5, [1e-4] * 5)
     m2["per_rank"][1]["core_probe"] = None
     assert projection.core_pace(m1, m2) is None
+
+
+def concurrent(split, waits, steps=100):
+    """A `--concurrent` window: every core's phase seconds (its start barrier included) and barrier waits."""
+    rows = zip(split, waits, strict=True)
+    return {"per_rank": [{"split": dict(sp), "waits": dict(w), "gas_steps": steps} for sp, w in rows]}
+
+
+def test_busy_core_pays_the_wait_at_its_phase_end(projection):
+    """A phase's time on a busy core: its work, less the barrier at its start, plus the one before the next phase."""
+    serial = {"per_rank": [{"split": {"dem": 10.0, "coupling": 4.0, "gas": 8.0}, "gas_steps": 100}]}
+    waits = {"dem": 0.5, "coupling": 0.3, "gas": 0.2, "untimed": 0.4}
+    split = {"dem": 11.0, "coupling": 4.6, "gas": 8.2}
+    f = projection.load_factor(serial, concurrent([split, split], [waits, waits]))
+    assert f["dem"] == pytest.approx((11.0 - 0.5 + 0.3) / 10.0, rel=1e-12)  # the wait for the DEM's end
+    assert f["coupling"] == pytest.approx((4.6 - 0.3 + 0.5 + 0.2) / 4.0, rel=1e-12)  # two coupling parts per step
+    assert f["gas"] == pytest.approx((8.2 - 0.2 + 0.4) / 8.0, rel=1e-12)
+    # every barrier counted once: the phases add up to the cores' timed seconds and the untimed barrier
+    total = sum(f[k] * serial["per_rank"][0]["split"][k] for k in f)
+    assert total == pytest.approx(sum(split.values()) + waits["untimed"], rel=1e-12)
+
+
+def test_busy_core_factor_per_gas_step(projection):
+    """A concurrent window of twice the serial window's gas steps at the same pace is not slower."""
+    serial = {"per_rank": [{"split": {"dem": 10.0, "coupling": 4.0, "gas": 8.0}, "gas_steps": 100}]}
+    zero = {"dem": 0.0, "coupling": 0.0, "gas": 0.0, "untimed": 0.0}
+    doubled = {"dem": 20.0, "coupling": 8.0, "gas": 16.0}
+    f = projection.load_factor(serial, concurrent([doubled, doubled], [zero, zero], steps=200))
+    assert f == pytest.approx({"dem": 1.0, "coupling": 1.0, "gas": 1.0}, rel=1e-12)
+    assert projection.load_factor(serial, None) == {"dem": 1.0, "coupling": 1.0, "gas": 1.0}
+
+
+def serial_window(gas, steps, dem=6.0, coupling=2.0):
+    sample = {"pairs": 1000, "owned": 100, "nodes_owned": 50}
+    row = {"t0": 0.0, "t1": steps * 1e-4, "gas_steps": steps, "dem_steps": 8 * steps, "builds": steps // 2,
+           "split": {"dem": dem, "coupling": coupling, "gas": gas}, "samples": [sample]}  # fmt: skip
+    return {"per_rank": [row]}
+
+
+def test_check_takes_the_parallel_solver_as_a_ratio_to_its_own_window(projection):
+    """The CG + GAMG window was measured beside the base window: 0.9 of its gas time per step. A check's serial
+    window, slower per step, keeps that ratio rather than the GAMG window's absolute seconds."""
+    base, gamg = serial_window(10.0, 100), serial_window(9.0, 100)
+    own = serial_window(16.0, 200)
+    cost = projection.unit_costs(own, gamg, iter_of=base)
+    assert cost["us_per_node_step_iter"] == pytest.approx(1e6 * 16.0 * 0.9 / (200 * 50), rel=1e-12)
+    assert cost["us_per_node_step"] == pytest.approx(1e6 * 16.0 / (200 * 50), rel=1e-12)
+    # without iter_of the GAMG window is the base's own companion: its seconds per step
+    same = projection.unit_costs(base, gamg)
+    assert same["us_per_node_step_iter"] == pytest.approx(1e6 * 9.0 / (100 * 50), rel=1e-12)
