@@ -582,7 +582,11 @@ def summarize_rounds(rounds: dict, result) -> None:
         f"check: model - measured over {g.size} rounds: median {np.median(g):+.1f} points, from {g.min():+.1f} to "
         f"{g.max():+.1f}; within 5 points in {within} of {g.size}"
     )
-    result["validation_rounds"] = {"gaps": gaps, "median": float(np.median(g)), "within_5": within}
+    result["validation_rounds"] = {
+        "gaps": gaps, "median": float(np.median(g)), "within_5": within,
+        "measured": [v["measured"]["total"] for v in rounds.values()],
+        "model": [v["model"]["total"] for v in rounds.values()],
+    }  # fmt: skip
 
 
 def _result_key(variant: str) -> str:
@@ -803,9 +807,11 @@ def plot(result) -> None:
                 rows_v = result[f"meshes_{variant}"][name]
                 ax.plot(P, [r["E_total"] for r in rows_v], st, mfc="none", label=lab)
         if name == "C2" and "validation" in result:
-            v = result["validation"]
-            ax.plot([2], [v["reference"]], "r*", ms=12, label="measured, 2 ranks, the checkpoint's state")
-            ax.plot([2], [v["model"]["total"]], "ko", mfc="none", ms=11, label="model, same state as measured")
+            v = result.get("validation_rounds")  # every round of the check, else the one
+            meas = v["measured"] if v else [result["validation"]["reference"]]
+            model = v["model"] if v else [result["validation"]["model"]["total"]]
+            ax.plot([2] * len(meas), meas, "r*", ms=12, label="measured, 2 ranks, the checkpoint's state")
+            ax.plot([2] * len(model), model, "ko", mfc="none", ms=11, label="model, same state as measured")
         ax.axhline(0.7, color="0.6", lw=0.8, ls="--")
         ax.set_xscale("log", base=2)
         ax.set_xticks(P, [str(p) for p in P])
