@@ -115,3 +115,22 @@ def test_check_takes_the_parallel_solver_as_a_ratio_to_its_own_window(projection
     # without iter_of the GAMG window is the base's own companion: its seconds per step
     same = projection.unit_costs(base, gamg)
     assert same["us_per_node_step_iter"] == pytest.approx(1e6 * 9.0 / (100 * 50), rel=1e-12)
+
+
+def test_dem_on_several_ranks_costs_its_parallel_code_path(projection):
+    """The staged window (the DEM's parallel code path on one process) sets the DEM's cost per pair on several
+    ranks, as a ratio to the window it was measured beside; its rebuilds key the history, so that is not added."""
+    base = serial_window(10.0, 100, dem=6.0)
+    staged = serial_window(10.0, 100, dem=7.2)
+    row = {"rebuild": [0.010, 0.011], "rebuild_keyed": [0.018, 0.019], "rebuild_staged": [0.013, 0.014],
+           "locate": [0.001, 0.001], "rebuild_loads": {"pairs": 1000, "owned": 100}}  # fmt: skip
+    rebuild = {"per_rank": [row]}
+    own = serial_window(16.0, 200, dem=15.0)
+    cost = projection.unit_costs(own, None, rebuild, staged=staged, iter_of=base)
+    assert cost["us_per_pair_step_staged"] == pytest.approx(cost["us_per_pair_step"] * 1.2, rel=1e-12)
+    assert cost["us_per_pair_keyed_rebuild"] == 0.0
+    assert cost["us_per_particle_locate"] == pytest.approx(1e6 * 0.001 / 100, rel=1e-12)
+    # without the staged window: the parallel rebuild's own work from its code path on one process (medians)
+    plain = projection.unit_costs(base, None, rebuild)
+    assert plain["us_per_pair_step_staged"] == plain["us_per_pair_step"]
+    assert plain["us_per_pair_keyed_rebuild"] == pytest.approx(1e6 * (0.014 - 0.011) / 1000, rel=1e-12)
