@@ -369,10 +369,7 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
     nbr = c[f"{key}ghost_nbrs"][rows]
     mig = c[f"{key}migrated"][rows]
     per_pair = cost["us_per_pair_step_staged" if P > 1 else "us_per_pair_step"]  # the parallel code path
-    dem = nd * (
-        fp * per_pair * f["dem"] * 1e-6
-        + (UPDATE_CALLS + nbr * L + sent * UPDATE_BYTES / B + red) * (P > 1)
-    )
+    dem = nd * (fp * per_pair * f["dem"] * 1e-6 + (UPDATE_CALLS + nbr * L + sent * UPDATE_BYTES / B + red) * (P > 1))
     gap = float(np.mean(np.diff(c["times"])))  # migration is counted between snapshots
     dem = (
         dem
