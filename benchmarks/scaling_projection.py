@@ -91,9 +91,9 @@ LEVELS = {"C2": "intermediate", "C3": "fine"}
 TRANSFER_BYTES = (8 + 6) * 8
 TRANSFER_CALLS = 2 * UPDATE_CALLS
 # The documented 1 -> 2 rank efficiency of C2 from the census's checkpoint (docs/scaling.md, "Check against
-# measured runs"): the median of six rounds of 0.02 s windows on vm3 (83.4-86.6 %); the reference when no
+# measured runs"): the median of ten rounds of 0.02 s windows on vm3 (73.2-86.6 %); the reference when no
 # 2-rank window of the checkpoint was measured here.
-DOCUMENTED = {"0.02 s windows of the census's checkpoint, median of six rounds on vm3": 0.854}
+DOCUMENTED = {"0.02 s windows of the census's checkpoint, median of ten rounds on vm3": 0.853}
 
 
 def snapshots(run: Path, t0: float, t1: float) -> list[tuple[float, Path]]:
