@@ -72,8 +72,8 @@ REBUILD_CALLS = 141e-6
 # (`scaling_measure.py --calls`): the gas step's halo updates of nodal fields, scatters of the sweeps' extra
 # columns, PETSc ghost updates and reductions; the coupling's nodal sums (reverse and forward scatters) and
 # reductions.
-GAS_CALLS = {"scatter_forward": 5, "vec_scatter": 7, "ghost_update": 2, "allreduce": 4, "Allreduce": 3}
-COUPLING_CALLS = {"scatter_forward": 2, "scatter_reverse": 2, "allreduce": 2}
+GAS_CALLS = {"scatter_forward": 5, "vec_scatter": 7, "ghost_update": 2, "allreduce": 3, "Allreduce": 3}
+COUPLING_CALLS = {"scatter_forward": 3, "scatter_reverse": 3, "allreduce": 3}
 # Outside the pressure solver the gas step's exchanges are those calls: each halo update, scatter or ghost
 # update sends one message to each halo neighbour, each reduction costs log2(P) latencies.
 GAS_EXCHANGES = GAS_CALLS["scatter_forward"] + GAS_CALLS["vec_scatter"] + GAS_CALLS["ghost_update"]
