@@ -5,9 +5,8 @@ and counts, per rank, the owned and ghost particles, listed and force pairs, own
 and the bytes sent per gas step, over particle snapshots of a bubbling bed. The model turns these into time
 with single-core costs per unit of work measured on the same bed (`scaling_measure.py`, serially, once with
 the serial pressure solver and once with the parallel one, the DEM also on its parallel code path; on
-several ranks each core's costs grow by the
-slow-down measured with every core working, and the exchange calls and the pressure operator's COO fill add
-their measured costs) and an interconnect of stated bandwidth and latency, takes the slowest rank of each
+several ranks each core's costs grow by the slow-down measured with every core working, and the exchange
+calls and the pressure operator's COO fill add their measured costs) and an interconnect of stated bandwidth and latency, takes the slowest rank of each
 phase (DEM, coupling, gas), and checks its 2-rank efficiency against a measured one of the same state and its
 loads against a 2-rank run (docs/scaling.md). Besides febed's default decomposition it projects three others
 (`VARIANTS`): the particles by DEM work, coupled by the owners of their cells, with the mesh partition or the
@@ -31,7 +30,8 @@ run.particle_partition=work --tag TAG_work`):
 
 The check of the model (docs/scaling.md) is made in rounds, each a serial, a 2-rank and a concurrent window of
 the same checkpoint tagged alike (`--sim-time 0.02 --tag _r1`, and `--concurrent --tag _r1_concurrent` on 2
-ranks); `--check _r1,_r2,...` checks every round with its own costs and prints the median gap.
+ranks); `--check _r1,_r2,...` checks every round with its own serial costs and the rounds' median busy-core
+slow-down (which the projections then take too), and prints the median gap.
 
 RUN_DIR is a C2 run folder with particle snapshots over the census window (`--from`, `--to`) and its checkpoint
 at the window's end, which the measurements continue (`febed run demos/pseudo2d/C2.toml --set run.end_time=1.5
@@ -568,7 +568,8 @@ def main() -> None:
 
 def check_round(census, cost, inputs, net, m1, m2, tag, variants, result) -> None:
     """The check of one round `tag` (its serial, 2-rank and concurrent windows): the model with the round's own
-    costs per unit of work and busy-core slow-down, against its 2-rank window (`validate`, `validate_work`)."""
+    costs per unit of work and busy-core slow-down (the rounds' median when several are checked, `cost`'s),
+    against its 2-rank window (`validate`, `validate_work`)."""
     c1 = load_measured("C2", 1, tag) or m1
     c2 = load_measured("C2", 2, tag) if tag else m2
     check_cost = cost
