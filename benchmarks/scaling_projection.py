@@ -1,17 +1,17 @@
 """Projected parallel efficiency of the pseudo-2D case C2 and its fine mesh at 2-64 ranks, from a census of the work.
 
-The census (`scaling_census.py`) repeats febed's decomposition on one process for P = 1, 2, 4, ..., 64 parts
-and counts, per rank, the owned and ghost particles, listed and force pairs, owned gas nodes and halo nodes,
-and the bytes sent per gas step, over particle snapshots of a bubbling bed. The model turns these into time
-with single-core costs per unit of work measured on the same bed (`scaling_measure.py`, serially, once with
-the serial pressure solver and once with the parallel one, the DEM also on its parallel code path; on
-several ranks each core's costs grow by the slow-down measured with every core working, and the exchange
-calls and the pressure operator's COO fill add their measured costs) and an interconnect of stated bandwidth
-and latency, takes the slowest rank of each phase (DEM, coupling, gas), and checks its 2-rank efficiency
-against a measured one of the same state and its loads against a 2-rank run (docs/scaling.md). Besides febed's default decomposition it projects three others
-(`VARIANTS`): the particles by DEM work, coupled by the owners of their cells, with the mesh partition or the
-mesh in compact blocks, and the latter coupled by the particles' owners through a nodal exchange, which is
-febed's `particle_partition = "work"` (its check: `--check TAG` with a 2-rank window run with `--set
+The census (`scaling_census.py`) repeats febed's decomposition on one process for P = 1, 2, 4, ..., 64 parts and
+counts, per rank, the owned and ghost particles, listed and force pairs, owned gas nodes and halo nodes, and the
+bytes sent per gas step, over particle snapshots of a bubbling bed. The model turns these into time with single-core
+costs per unit of work measured on the same bed (`scaling_measure.py`, serially, once with the serial pressure
+solver and once with the parallel one, the DEM also on its parallel code path; on several ranks each core's costs
+grow by the slow-down measured with every core working, and the exchange calls and the pressure operator's COO fill
+add their measured costs) and an interconnect of stated bandwidth and latency, takes the slowest rank of each phase
+(DEM, coupling, gas), and checks its 2-rank efficiency against a measured one of the same state and its loads
+against a 2-rank run (docs/scaling.md). Besides febed's default decomposition it projects three others (`VARIANTS`):
+the particles by DEM work, coupled by the owners of their cells, with the mesh partition or the mesh in compact
+blocks, and the latter coupled by the particles' owners through a nodal exchange, which is febed's
+`particle_partition = "work"` (its check: `--check TAG` with a 2-rank window run with `--set
 run.particle_partition=work --tag TAG_work`):
 
     python benchmarks/scaling_measure.py --restart RUN_DIR                        # serial costs
