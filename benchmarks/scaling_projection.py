@@ -84,6 +84,10 @@ GAS_REDUCTIONS = GAS_CALLS["allreduce"] + GAS_CALLS["Allreduce"]
 # every message of the model does; each exchange the software cost of a PETSc ghost update beyond one process
 # (`call_s["ghost_update"]`), with as many exchanges at every P as messages on 2 ranks (one neighbour each).
 SOLVER_COUNTS = OUT / "solver_counts.json"
+# The same counts with GAMG's coarse levels gathered onto fewer ranks (`gas.petsc_options =
+# "-febed_pressure_weighted_pc_gamg_process_eq_limit 500"`), projected as an option beside the default solver.
+EQ_LIMIT = 500
+SOLVER_COUNTS_EQ = OUT / f"solver_counts_eq{EQ_LIMIT}.json"
 LEVELS = {"C2": "intermediate", "C3": "fine"}
 # A decomposition of the particles apart from the mesh's: each gas step, a particle whose cell another rank
 # owns goes there (position, velocity, diameter, id: 8 doubles) and its forces come back (drag and pressure
@@ -206,8 +210,10 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
     owned = np.mean([s["owned"] for s in loads])
     nodes = loads[0]["nodes_owned"]
     gas_iter = split["gas"]
+    ksp_share = r.get("ksp", 0.0) / split["gas"]  # the pressure solves' share of the gas phase
     if m1_iter is not None:
         ri = m1_iter["per_rank"][0]
+        ksp_share = ri.get("ksp", 0.0) / ri["split"]["gas"]
         rb = (iter_of or m1)["per_rank"][0]
         gas_iter = split["gas"] * (ri["split"]["gas"] / ri["gas_steps"]) / (rb["split"]["gas"] / rb["gas_steps"])
     dem_staged = split["dem"]
@@ -258,20 +264,22 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
         "us_per_node_step": 1e6 * split["gas"] / (r["gas_steps"] * nodes),
         "us_per_particle_step": per_particle,
         "us_per_node_step_iter": 1e6 * gas_iter / (r["gas_steps"] * nodes),
+        "ksp_share": min(1.0, ksp_share),
         "output_s_per_s": split.get("output", 0.0) / sim,
         "pairs": pairs,
         "nodes": nodes,
     }
 
 
-def solver_counts(real: dict | None = None, path: Path = SOLVER_COUNTS) -> dict | None:
+def solver_counts(real: dict | None = None, path: Path = SOLVER_COUNTS, scale: dict | None = None) -> dict | None:
     """Per mesh (C2, C3) and rank count P > 1: the pressure solver's messages, bytes and reductions per gas step
-    on its busiest rank (max over ranks of each), from `gas_step.py --solver-counts`; None, with the command to
-    run, if any is missing.
+    on its busiest rank (max over ranks of each) and its busiest rank's flops, from `gas_step.py --solver-counts`;
+    None, with the command to run, if any is missing.
 
     `real`: a 2-rank window of the bubbling bed (`scaling_measure.py`, which records the same counts). The
     gas-step benchmark's bed-like ε changes more slowly than a bubbling bed's, so its AMG is set up again less
-    often; every count is scaled by the real window's count over the benchmark's on C2 at 2 ranks ("scale").
+    often; every count is scaled by the real window's count over the benchmark's on C2 at 2 ranks ("scale"), or
+    by `scale` if given (the default solver's, for counts of another solver on the same benchmark).
     """
     data = json.loads(path.read_text()) if path.is_file() else {}
     out, missing = {}, []
@@ -282,7 +290,7 @@ def solver_counts(real: dict | None = None, path: Path = SOLVER_COUNTS) -> dict 
             if got is None:
                 missing.append(f"{level} at {P}")
                 continue
-            out[name][P] = {k: float(max(got[k])) for k in ("messages", "bytes", "reductions")}
+            out[name][P] = {k: float(max(got[k])) for k in ("messages", "bytes", "reductions", "flops")}
     if missing:
         print(
             f"skipped: no pressure-solver counts in {path} for the {', '.join(missing)} rank(s); for each mesh level "
@@ -291,7 +299,9 @@ def solver_counts(real: dict | None = None, path: Path = SOLVER_COUNTS) -> dict 
         )
         return None
     out["scale"] = {"messages": 1.0, "bytes": 1.0, "reductions": 1.0}
-    if real is not None and "solver" in real["per_rank"][0]:
+    if scale is not None:
+        out["scale"] = dict(scale)
+    elif real is not None and "solver" in real["per_rank"][0]:
         for k in out["scale"]:
             got = max(r["solver"][k] / r["gas_steps"] for r in real["per_rank"])
             out["scale"][k] = got / out["C2"][2][k]
@@ -395,6 +405,8 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
     halo = c[f"{gkey}halo"][None, :]
     hn = c[f"{gkey}halo_nbrs"][None, :]
     per_node = cost["us_per_node_step" if name == "C2" and P == 1 else "us_per_node_step_iter"]
+    if P > 1 and "solver_flops" in cost:  # another solver: its busiest rank's flops over the default's, in the solves
+        per_node *= 1.0 + cost["ksp_share"] * (cost["solver_flops"][name][P] - 1.0)
     coo = cost["us_per_entry_coo"] * cost["entries_per_node"] * (nodes + halo) * (P > 1)  # L_w's COO fill
     solver = cost["solver"][name][P] if P > 1 else {"messages": 0.0, "bytes": 0.0, "reductions": 0.0}
     solver_calls = cost["solver"][name][2]["messages"] if P > 1 else 0.0  # one message per exchange on 2 ranks
@@ -552,6 +564,7 @@ def main() -> None:
                         f"{r['E_gas']:.0%})"
                     )
             result[_result_key(variant)][name] = rows
+    project_eq_limit(census, cost, net, snap, result)
     if census.get("checkpoint") is not None and bool(census["checkpoint"]):
         rounds = {}
         for tag in tags:
@@ -564,6 +577,36 @@ def main() -> None:
             summarize_rounds(rounds, result)
     plot(result)
     (OUT / "scaling_projection.json").write_text(json.dumps(result, indent=1, default=float))
+
+
+def project_eq_limit(census, cost, net, snap, result) -> None:
+    """The projection with GAMG's `process_eq_limit` at EQ_LIMIT (the pressure solver's counts and busiest rank's
+    flops from `SOLVER_COUNTS_EQ`, scaled as the default's), for febed's decomposition; nothing without them."""
+    if not SOLVER_COUNTS_EQ.is_file():
+        print(f"note: no {SOLVER_COUNTS_EQ}: no projection with GAMG's process_eq_limit {EQ_LIMIT}")
+        return
+    alt = solver_counts(path=SOLVER_COUNTS_EQ, scale=cost["solver"]["scale"])
+    if alt is None:
+        return
+    flops = {n: {P: alt[n][P]["flops"] / cost["solver"][n][P]["flops"] for P in RANKS[1:]} for n in LEVELS}
+    alt_cost = {**cost, "solver": alt, "solver_flops": flops}
+    result["gamg_eq_limit"] = {"eq_limit": EQ_LIMIT}
+    print(f"\nwith GAMG's process_eq_limit {EQ_LIMIT} (particles with their cells):")
+    for name in MESHES:
+        t1 = phase_times(census, name, 1, cost, net, snap)
+        rows = []
+        for P in RANKS[1:]:
+            tp = phase_times(census, name, P, alt_cost, net, snap)
+            e = {k: t1[k] / (P * tp[k]) for k in ("gas", "total")}
+            rows.append({"P": P, "E_gas": e["gas"], "E_total": e["total"], "messages": alt[name][P]["messages"],
+                         "flops_ratio": flops[name][P]})  # fmt: skip
+        result["gamg_eq_limit"][name] = rows
+        print(
+            f"{name}: " + ", ".join(
+                f"{r['P']}: {r['E_total']:.0%} (gas {r['E_gas']:.0%}, {r['messages']:.0f} messages, flops x"
+                f"{r['flops_ratio']:.2f})" for r in rows
+            )
+        )  # fmt: skip
 
 
 def check_round(census, cost, inputs, net, m1, m2, tag, variants, result) -> None:

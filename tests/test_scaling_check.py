@@ -4,6 +4,7 @@ core's slow-down from the concurrent window (`load_factor`) and the check's cost
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -134,3 +135,17 @@ def test_dem_on_several_ranks_costs_its_parallel_code_path(projection):
     plain = projection.unit_costs(base, None, rebuild)
     assert plain["us_per_pair_step_staged"] == plain["us_per_pair_step"]
     assert plain["us_per_pair_keyed_rebuild"] == pytest.approx(1e6 * (0.014 - 0.011) / 1000, rel=1e-12)
+
+
+def test_another_solvers_counts_take_the_default_solvers_scale(projection, tmp_path):
+    """Counts of another solver on the same benchmark are scaled like the default's (not by their own 2-rank
+    counts, which a bubbling-bed window of the default solver says nothing about); the busiest rank's flops
+    come along unscaled."""
+    ranks = [2, 4, 8, 16, 32, 64]
+    row = {"messages": [10.0, 12.0], "bytes": [100.0, 80.0], "reductions": [4.0, 4.0], "flops": [5.0, 7.0]}
+    data = {level: {str(P): row for P in ranks} for level in ("intermediate", "fine")}
+    path = tmp_path / "counts.json"
+    path.write_text(json.dumps(data))
+    out = projection.solver_counts(path=path, scale={"messages": 2.0, "bytes": 0.5, "reductions": 1.0})
+    assert out["C2"][16] == {"messages": 24.0, "bytes": 50.0, "reductions": 4.0, "flops": 7.0}
+    assert out["C3"][64]["messages"] == 24.0
