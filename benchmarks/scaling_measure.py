@@ -468,6 +468,20 @@ def main() -> None:
                     mine["coo_fill"] = timed_calls(comm, lambda: coo.fill(W.vals), args.rebuilds)
                     mine["coo_entries"] = int(W.cols.size)
                     coo.M.destroy()
+            # the coupling's work over the mesh nodes, per gas step: the projection's filter passes and division
+            # (no particle deposited) and, with the nodal reaction, the filter's transpose of ∇p
+            P = dem.particles
+            n = P.n_owned
+            d_orig, n_orig = s._originals()
+            none = np.zeros(n, dtype=bool)
+            zeros = np.zeros(n)
+
+            def coupling_nodes():
+                s.coupler.project_to_gas(d_orig, n_orig, zeros, P.vel[:n], owned=none)
+                if s._nodal_reaction():
+                    s.coupler.filter_transpose(s.gas.grad_p)
+
+            mine["coupling_nodes"] = timed_calls(comm, coupling_nodes, args.rebuilds)
             # last (the DEM stays on the parallel code path): a rebuild through an exchange on one process, which
             # migrates and locates nobody and has no ghosts, but keys and restores the history, and re-sorts the
             # rows every sort_every builds as on several ranks (the keyed rebuild above re-sorts them every time)

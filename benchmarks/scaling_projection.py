@@ -189,8 +189,9 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
     nodes); m1_iter: the same window with the parallel runs' pressure solver (CG + GAMG) on one process, whose
     gas cost per node is used for every run on several ranks and for meshes too large for the factorisation;
     m1_rebuild: the parallel rebuild's own work (its code path on one process less a serial rebuild, per listed
-    pair: the history by key; and locating every particle, per particle) and the COO fill of the drag-weighted
-    operator, on one core;
+    pair: the history by key; and locating every particle, per particle), the COO fill of the drag-weighted
+    operator, and the coupling's work over the nodes per gas step (the filter's passes, which a rank makes over
+    its owned and halo nodes; the rest of the coupling is counted per particle), on one core;
     loaded: the serial window run on every core at once, phases started together (`--concurrent`), whose
     costs over m1's per phase are the slow-down of a core while the others do the same phase (`load_factor`,
     applied on several ranks); calls: the exchange calls timed serially and on 2 ranks (`--calls`), whose
@@ -220,7 +221,7 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
     if staged is not None:
         rs, rb = staged["per_rank"][0], (iter_of or m1)["per_rank"][0]
         dem_staged = split["dem"] * (rs["split"]["dem"] / rs["dem_steps"]) / (rb["split"]["dem"] / rb["dem_steps"])
-    keyed = locate = coo = 0.0
+    keyed = locate = coo = cpl_nodes = 0.0
     entries = 0
     if m1_rebuild is not None:
         rb = m1_rebuild["per_rank"][0]
@@ -233,6 +234,8 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
             keyed = 0.0
         if "coo_fill" in rb:
             coo, entries = rb["coo_fill"][0] / rb["coo_entries"], rb["coo_entries"]
+        if "coupling_nodes" in rb:  # the coupling's work over the nodes per gas step (s), of this window's share
+            cpl_nodes = min(rb["coupling_nodes"][0], split["coupling"] / r["gas_steps"])
     factor = load_factor(m1, loaded)
     call_s = {}
     if calls is not None:
@@ -240,13 +243,15 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
         alone = one["per_rank"][0]["calls"]
         for k in alone:
             call_s[k] = max(0.0, max(r["calls"][k][0] for r in two["per_rank"]) - alone[k][0])
-    per_particle = 1e6 * split["coupling"] / (r["gas_steps"] * owned)
+    per_particle = 1e6 * split["coupling"] / (r["gas_steps"] * owned)  # all of it, less the nodes' below
     per_particle_owners = per_particle
     if owners is not None:
         ro = owners["per_rank"][0]
         per_particle_owners = (
             per_particle * ro["split"]["coupling"] / split["coupling"] * r["gas_steps"] / ro["gas_steps"]
         )
+    node_share = 1e6 * cpl_nodes / owned  # µs per particle of the coupling's work over the nodes
+    per_particle, per_particle_owners = per_particle - node_share, per_particle_owners - node_share
     return {
         "us_per_particle_step_owners": per_particle_owners,
         "load_factor": factor,
@@ -263,6 +268,7 @@ def unit_costs(m1: dict, m1_iter: dict | None, m1_rebuild: dict | None = None, l
         "us_per_pair_step_staged": 1e6 * dem_staged / (r["dem_steps"] * pairs),
         "us_per_node_step": 1e6 * split["gas"] / (r["gas_steps"] * nodes),
         "us_per_particle_step": per_particle,
+        "us_per_node_coupling": 1e6 * cpl_nodes / nodes,  # the filter's passes over the rank's local nodes
         "us_per_node_step_iter": 1e6 * gas_iter / (r["gas_steps"] * nodes),
         "ksp_share": min(1.0, ksp_share),
         "output_s_per_s": split.get("output", 0.0) / sim,
@@ -421,6 +427,7 @@ def phase_times(c: dict, name: str, P: int, cost: dict, net: dict, rows=slice(No
         + solver["reductions"] * red
     )
     cpl = cpl + ng * sum(n * calls.get(k, 0.0) for k, n in COUPLING_CALLS.items())
+    cpl = cpl + ng * (nodes + halo) * cost.get("us_per_node_coupling", 0.0) * f["coupling"] * 1e-6  # the filter
     out = {k: float(np.mean(np.max(v, axis=1))) for k, v in (("dem", dem), ("coupling", cpl), ("gas", gas))}
     out["output"] = cost["output_s_per_s"] / P
     out["total"] = sum(out.values())

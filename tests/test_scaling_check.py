@@ -149,3 +149,16 @@ def test_another_solvers_counts_take_the_default_solvers_scale(projection, tmp_p
     out = projection.solver_counts(path=path, scale={"messages": 2.0, "bytes": 0.5, "reductions": 1.0})
     assert out["C2"][16] == {"messages": 24.0, "bytes": 50.0, "reductions": 4.0, "flops": 7.0}
     assert out["C3"][64]["messages"] == 24.0
+
+
+def test_the_couplings_work_over_the_nodes_is_counted_per_node(projection):
+    """A rank filters over its owned and halo nodes: the measured nodal part of the coupling is taken out of the
+    cost per particle and given per node, so that one process's total is unchanged."""
+    base = serial_window(10.0, 100, coupling=10.0)  # 0.1 s of coupling per gas step, 100 particles, 50 nodes
+    row = {"rebuild": [0.01, 0.01], "rebuild_keyed": [0.02, 0.02], "locate": [0.001, 0.001],
+           "rebuild_loads": {"pairs": 1000, "owned": 100}, "coupling_nodes": [0.002, 0.0021]}  # fmt: skip
+    cost = projection.unit_costs(base, None, {"per_rank": [row]})
+    assert cost["us_per_node_coupling"] == pytest.approx(1e6 * 0.002 / 50, rel=1e-12)
+    assert cost["us_per_particle_step"] == pytest.approx(1e6 * (0.1 - 0.002) / 100, rel=1e-12)
+    total = cost["us_per_particle_step"] * 100 + cost["us_per_node_coupling"] * 50
+    assert total == pytest.approx(1e6 * 0.1, rel=1e-12)
