@@ -1,5 +1,6 @@
 """benchmarks/scaling_projection.py: the cores' pace of a 2-rank window from its probes (`core_pace`), a busy
-core's slow-down from the concurrent window (`load_factor`) and the check's costs from its own window."""
+core's slow-down from the concurrent window (`load_factor`), the costs per unit of work (`unit_costs`: a check's
+own window, the DEM's parallel code path, the coupling's filter per node) and the solver's counts."""
 
 from __future__ import annotations
 
