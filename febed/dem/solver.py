@@ -680,11 +680,11 @@ class DEM:
         Each spring has the stiffness the force law gives it: k_n, or with per-pair group scaling
         (`febed.dem.contact.GroupParams`, PCPM) k_n l² with l³ = m_eff / m_ref of that pair (a wall: m_i / m_ref).
         """
+        if self.exchange.any(self._dirty) if self.exchange is not None else self._dirty:
+            self.rebuild()  # with MPI it may migrate rows: the counts below are taken after it
         P = self.particles
         n = P.n_owned
         pl = self.pairs
-        if self.exchange.any(self._dirty) if self.exchange is not None else self._dirty:
-            self.rebuild()
         m = int(pl.start[n])
         i = np.repeat(np.arange(n), np.diff(pl.start[: n + 1]))
         j = pl.nbr[:m]

@@ -260,6 +260,25 @@ def test_particles_inserted_anywhere_go_to_their_owners():
     assert np.all(ex.claim(P.pos[:n]) == COMM.rank)  # each particle sits in a cell of its rank
 
 
+@pytest.mark.parametrize("kind", ["cells", "work"])
+def test_elastic_energy_counts_every_contact_once_after_rows_moved_to_their_owners(kind):
+    """Overlapping pairs all along the box, inserted unevenly by the ranks (most in other ranks' parts): the
+    energy rebuilds the lists first, which moves rows to their owners and changes each rank's count; it is then
+    0.5 k δ² for every pair once, whichever rank holds each side."""
+    L, k_n, npairs = 0.012, 1000.0, 40
+    ex = box_exchange([0, 0, 0], [L, L, 4 * L], [3, 3, 8], kind)
+    dem = DEM(DEMParams(gravity=0.0, stiffness=k_n))
+    dem.attach_exchange(ex)
+    k = np.arange(npairs)
+    inserter = np.where(k % 3 == 0, 0, 1 + k % max(COMM.size - 1, 1)) % COMM.size
+    z = (k[inserter == COMM.rank] + 0.5) / npairs * 4 * L  # pairs 1.2 D apart in z: only the pairs touch
+    a = np.stack([np.full_like(z, L / 2 - 0.475 * D), np.full_like(z, L / 2), z], axis=1)
+    dem.add_particles(np.concatenate([a, a + [0.95 * D, 0.0, 0.0]]), D, RHO)  # overlaps of 0.05 D
+    e = dem.elastic_energy()
+    assert e == pytest.approx(npairs * 0.5 * k_n * (0.05 * D) ** 2, rel=1e-9)
+    assert COMM.allreduce(dem.particles.n_owned) == 2 * npairs
+
+
 @pytest.mark.mpi
 def test_balance_line_reports_particles_and_pairs_per_rank():
     """The log's balance line: both counts gathered in rank order, max/mean of each, the same line on every rank."""
