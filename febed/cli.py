@@ -19,7 +19,8 @@ after writing its last good state as a checkpoint, and so does a run stopped by 
 the signal number (130, 143, 138), also when stopped during start-up (status.json then says so); a traceback
 means a bug in febed (`febed run -v` shows the traceback of a refused value too). A bug met while a run steps
 (`febed.runs.lifecycle.InternalError`) is logged with its traceback, recorded as an internal error in
-status.json, and exits with status 3 after writing the last good state (on one process).
+status.json, and exits with status 3 after writing the last good state (on one process). A failure or a bug
+met by one rank of several ends every rank's process (`_end_alone`: MPI_Abort with the same status).
 """
 
 from __future__ import annotations
@@ -379,16 +380,16 @@ def _main(args) -> int:
         _say(f"febed: error: {e}", err=True)
     except RunFailure as e:
         _say(f"febed: the run failed: {e}", err=True)
-        return 3
+        return _end_alone(e, 3)
     except DEMFailure as e:  # a pure-DEM run (a coupled run turns it into a RunFailure)
         _say(f"febed: the run failed: the particles blew up: {e}", err=True)
         return 3
     except InternalError as e:  # a bug met while the run stepped: its traceback is in the log already
         _say(f"febed: the run stopped on an {e}", err=True)
-        return 3
+        return _end_alone(e, 3)
     except Interrupted as e:
         _say(f"febed: {e}", err=True)
-        return 128 + e.signum
+        return _end_alone(e, 128 + e.signum)
     except KeyboardInterrupt as e:  # a stop signal during start-up (building a mesh, packing a bed), or Ctrl-C
         signum = getattr(e, "signum", 2)
         name = "Ctrl-C" if signum == 2 else e.args[0]
@@ -408,6 +409,23 @@ def _main(args) -> int:
             raise
         _say(f"febed: error: {e}", err=True)
     return 2
+
+
+def _end_alone(error: BaseException, code: int) -> int:
+    """`code`; but when `error` stopped this rank alone (its `alone`), end every rank's process with `code`.
+
+    The other ranks may be waiting in a collective call, and this process cannot exit normally either: PETSc
+    frees its objects at exit collectively (petsc4py's finalization), which would wait for them forever.
+    MPI_Abort ends the whole job, and mpirun exits with `code`; the status, log and message are written.
+    """
+    if getattr(error, "alone", False) and MPI.COMM_WORLD.size > 1:
+        import logging
+
+        sys.stdout.flush()
+        sys.stderr.flush()
+        logging.shutdown()
+        MPI.COMM_WORLD.Abort(code)
+    return code
 
 
 if __name__ == "__main__":

@@ -459,6 +459,18 @@ def get_logger(outdir: Path | None = None, comm=MPI.COMM_WORLD, verbose: bool = 
     return log
 
 
+def log_file_on_this_rank(log: logging.Logger, outdir: Path, comm=MPI.COMM_WORLD) -> None:
+    """Let this rank write to the run's `febed.log` too, its lines marked `[rank k]` (rank 0 writes it already).
+
+    For a rank that stops alone: rank 0, which writes the log, may be waiting for it in a collective call.
+    """
+    if comm.rank == 0 or any(isinstance(h, _LogFile) for h in log.handlers):
+        return
+    fh = _LogFile(Path(outdir) / LOG_FILE, mode="a")
+    fh.setFormatter(logging.Formatter(f"%(asctime)s %(levelname)s [rank {comm.rank}] %(message)s"))
+    log.addHandler(fh)
+
+
 def _last_progress(outdir: Path) -> tuple[str, str] | None:
     """(time stamp, text) of the last progress line in the run's log (its last 64 kB), or None."""
     import re

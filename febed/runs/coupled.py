@@ -324,7 +324,7 @@ class CoupledRun(RunMode):
                 if problem is None:
                     raise record_internal_error(self, e, where) from e
                 err = RunFailure(f"{problem}; it stopped the gas step from t = {s.t:.6g} s: {type(e).__name__}: {e}")
-                self.broken = self.comm.size > 1
+                self.broken = err.alone = self.comm.size > 1
                 self.fail(err, collective=not self.broken)
                 raise err from e
             self.output()

@@ -20,7 +20,8 @@ Every run mode steps its own solver; what happens between and around the steps i
 * Any other exception raised while a run steps is a bug in febed, not a failure of the simulation:
   `run_to_end` records it by `record_internal_error` (the traceback in the log, the last good state as a
   checkpoint on one process, status.json "failed" with a message saying it is an internal error) and raises
-  `InternalError`.
+  `InternalError`. On several ranks the rank that met it writes the status and log itself, and `febed run`
+  ends the whole job (`alone`), since the other ranks may wait for it in a collective call.
 * An output error (a full disk, permissions, an I/O error) while writing probes, fields, particles, a
   checkpoint or status.json stops the run on every rank (`guarded_write`, `OutputFailure`): the current
   state is written as a checkpoint if the disk takes it (the older ones are removed only after a newer one is
@@ -30,7 +31,7 @@ Every run mode steps its own solver; what happens between and around the steps i
 
 A run object given to these functions has `comm`, `case`, `outdir`, `log`, `display` (`febed.io.progress.Progress`),
 `good`, `_signal`, `_last_checkpoint`, `_last_progress`, `checkpoint_written`, `output_failed` and the methods
-`advance_to(end)`, `checkpoint(state=None)`, `status(state, message, collective)`, `catch_signals()` and
+`advance_to(end)`, `checkpoint(state=None)`, `status(state, message, collective, alone)`, `catch_signals()` and
 `close(last_output)` (collective).
 """
 
@@ -58,7 +59,7 @@ from febed.io.checkpoint import (
     write_checkpoint,
 )
 from febed.io.progress import Progress, RateMeter
-from febed.io.rundir import LOG_FILE, STATUS_FILE, write_status
+from febed.io.rundir import LOG_FILE, STATUS_FILE, log_file_on_this_rank, write_status
 from febed.io.state import gather as gather_state
 from febed.solver import RunFailure
 
@@ -66,11 +67,15 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # finish the ste
 
 
 class Interrupted(Exception):
-    """The run stopped on a signal after writing a checkpoint; `signum` is the signal."""
+    """The run stopped on a signal after writing a checkpoint; `signum` is the signal.
 
-    def __init__(self, signum: int, message: str):
+    `alone`: this rank stopped without the others (see `InternalError`).
+    """
+
+    def __init__(self, signum: int, message: str, alone: bool = False):
         super().__init__(message)
         self.signum = signum
+        self.alone = alone
 
 
 class StopNow(KeyboardInterrupt):
@@ -85,7 +90,13 @@ class InternalError(RuntimeError):
     """A run stopped on an unexpected exception: a bug in febed, not a failure of the simulation.
 
     The message names the exception and where the last good state is; the traceback is in the run's log.
+    `alone`: raised on one rank of several, whose others may be waiting in a collective call; `febed run` then
+    ends the whole job (`febed.cli`), since a process cannot even exit normally while the others wait.
     """
+
+    def __init__(self, message: str, alone: bool = False):
+        super().__init__(message)
+        self.alone = alone
 
 
 class OutputFailure(RunFailure):
@@ -233,11 +244,14 @@ class RunMode:
         """Record a failure: the last good state as a checkpoint (if `collective`) and the status (`record_failure`)."""
         record_failure(self, error, collective)
 
-    def status(self, state: str, message: str = "", collective: bool = True) -> None:
-        """Write `status.json` (running / finished / failed / interrupted) at the mode's clock (`write_run_status`)."""
+    def status(self, state: str, message: str = "", collective: bool = True, alone: bool = False) -> None:
+        """Write `status.json` (running / finished / failed / interrupted) at the mode's clock (`write_run_status`).
+
+        `alone`: this rank stopped without the others and writes the file itself (not collective).
+        """
         write_run_status(
-            self.outdir, state, self.sim_time(), self.case.run.end_time, self.steps_done(), message, self.comm,
-            collective,
+            self.outdir, state, self.sim_time(), self.case.run.end_time, self.steps_done(), message,
+            MPI.COMM_SELF if alone else self.comm, collective and not alone,
         )  # fmt: skip
 
 
@@ -419,7 +433,10 @@ def record_failure(run, error, collective: bool = True) -> None:
     """
     run.display.end()
     where = f"; {write_good_state(run)}" if run.good is not None and collective else ""
-    run.status("failed", f"{error}{where}", collective=False)
+    alone = not collective and run.comm.size > 1  # found by this rank only: it writes the status and log itself
+    if alone:
+        log_file_on_this_rank(run.log, run.outdir, run.comm)
+    run.status("failed", f"{error}{where}", collective=False, alone=alone)
     run.log.error(f"run failed: {error}{where}")
 
 
@@ -434,6 +451,7 @@ def record_internal_error(run, error: Exception, where: str = "") -> InternalErr
     run.display.end()
     if run.comm.size > 1:
         run.broken = True
+        log_file_on_this_rank(run.log, run.outdir, run.comm)  # rank 0 may be waiting for this one
     saved = ""
     if run.good is not None and not getattr(run, "broken", False):
         try:
@@ -445,9 +463,9 @@ def record_internal_error(run, error: Exception, where: str = "") -> InternalErr
         f"internal error{' ' + where if where else ''}: {what} (a bug in febed, not a failure of the simulation: "
         f"please report it with the traceback from {Path(run.outdir) / LOG_FILE}){saved}"
     )
-    run.status("failed", message, collective=False)
+    run.status("failed", message, collective=False, alone=run.comm.size > 1)
     run.log.error(f"run failed: {message}", exc_info=error)
-    return InternalError(message)
+    return InternalError(message, alone=run.comm.size > 1)
 
 
 def record_output_failure(run, error: OutputFailure) -> None:
@@ -514,7 +532,7 @@ def stopped_at_once(run, error: KeyboardInterrupt) -> Interrupted:
     message = f"stopped at once by a second {name}, without a checkpoint of this moment; {newest}{then}"
     run.status("interrupted", message, collective=False)
     run.log.warning(message)
-    return Interrupted(sig, message)
+    return Interrupted(sig, message, alone=run.comm.size > 1)
 
 
 def record_exit(outdir, log, error: BaseException, end: float, t: float = 0.0, step: int = 0,
