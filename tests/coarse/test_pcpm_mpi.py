@@ -3,7 +3,8 @@
 Groups packed in a box split into two z slabs, with events forced near the partition plane: the originals and
 the momentum are conserved over all ranks, gids stay unique, and no group placed by an event overlaps any
 other group (on any rank) beyond the tolerance — the other rank's groups are obstacles, and the two ranks take
-turns at the partition.
+turns at the partition. The same with the groups owned by boxes of equal work (`BoxExchange`), the events'
+energy measured as in a run (a collective rebuild after the events).
 """
 
 from mpi4py import MPI
@@ -14,7 +15,7 @@ import pytest
 from febed.coarse.pcpm import NO_CRUSH, GroupDynamics
 from febed.dem import DEM, DEMParams, Walls
 from febed.dem.insertion import random_positions
-from febed.parallel import ParticleExchange, slab_partitioner
+from febed.parallel import BoxExchange, ParticleExchange, slab_partitioner
 
 pytestmark = pytest.mark.mpi
 COMM = MPI.COMM_WORLD
@@ -28,8 +29,8 @@ def gathered(P):
     return [np.concatenate([p[k] for p in parts]) for k in range(5)]
 
 
-@pytest.mark.parametrize("min_group", [1.0, 0.125])
-def test_events_across_the_partition_conserve_and_do_not_overlap(min_group):
+@pytest.mark.parametrize(("min_group", "kind"), [(1.0, "cells"), (0.125, "cells"), (1.0, "work")])
+def test_events_across_the_partition_conserve_and_do_not_overlap(min_group, kind):
     import dolfinx.mesh as dm
 
     lo, hi = np.zeros(3), np.array([L, L, 2 * L])  # the partition plane is z = L on 2 ranks
@@ -40,9 +41,9 @@ def test_events_across_the_partition_conserve_and_do_not_overlap(min_group):
     pos = random_positions(150, lo, hi, 2.1 * DO, seed=2)  # the same on every rank, then distributed
     vel = np.array([0.2, 0.0, 0.0]) + 1e-4 * rng.normal(size=(150, 3))
     dem.add_particles(pos, 2 * DO, RHO, vel=vel, n_orig=8)
-    dem.attach_exchange(ParticleExchange.from_mesh(mesh), distribute=True)
+    dem.attach_exchange(ParticleExchange.from_mesh(mesh) if kind == "cells" else BoxExchange(COMM), distribute=True)
     gd = GroupDynamics(DO, RHO, 1.2, 1.8e-5, 0.45, overlap_tolerance=TOL, merge_tolerance=1.0, max_group=16,
-                       min_group=min_group, measure_energy=False, conserve_energy=False,
+                       min_group=min_group, measure_energy=kind == "work", conserve_energy=False,
                        seed=3 + COMM.rank)  # fmt: skip
     # divisible originals (min_group 1/8): crushes down to pieces of an original, counts in eighths
     # (the energy rule is tested serially in test_pcpm_energy.py; here events near the partition are wanted)
