@@ -4,7 +4,7 @@ VENV  := .venv
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.febed-setup
 DEB_PKGS := python3-dolfinx python3-petsc4py python3-mpi4py python3-numba python3-gmsh python3-pytest \
-            python3-pytest-xdist \
+            python3-pytest-xdist python3-pytest-timeout \
             python3-matplotlib python3-h5py python3-scipy python3-venv python3-pip python3-setuptools \
             openmpi-bin
 # root needs sudo-less apt and mpirun --allow-run-as-root; a normal user needs sudo for apt only.

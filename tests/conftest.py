@@ -24,6 +24,13 @@ def mpi_tmp_path():
         shutil.rmtree(path, ignore_errors=True)
 
 
+def pytest_collection_modifyitems(config, items):
+    """No pytest-timeout limit for the `slow` tests (hours for the longest), unless one sets its own."""
+    for item in items:
+        if item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
+            item.add_marker(pytest.mark.timeout(0))
+
+
 def pytest_runtest_logreport(report):
     """Under mpirun, a test that fails stops every rank at once (MPI Abort) with its report.
 
