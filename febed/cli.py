@@ -283,13 +283,33 @@ def _run(args) -> int:
                 getattr(runner, function)(case, outdir, log, restart=checkpoint)
         except BaseException as e:
             t, step = float(meta.get("time", 0.0)), int(meta.get("step", 0))
-            record_exit(outdir, log, _startup_stop(e), case.run.end_time, t, step, restart=checkpoint is not None)
+            stop = _startup_stop(e)
+            alone = _maybe_alone(stop)
+            if alone:
+                e.alone = True
+            record_exit(outdir, log, stop, case.run.end_time, t, step, restart=checkpoint is not None, alone=alone)
             raise
         MPI.COMM_WORLD.barrier()  # every rank is done with the folder
     finally:
         if not held:
             release_output(case.output_dir())
     return 0
+
+
+def _maybe_alone(error: BaseException) -> bool:
+    """Whether `error`, met on one of several ranks, may have been met by this rank alone (`_end_alone`).
+
+    Stop signals reach every rank, input errors are checked on every rank alike, and failures of the simulation
+    are agreed over the ranks; any other error (a bug, memory) may be this rank's only.
+    """
+    from febed.dem.solver import DEMFailure
+    from febed.runs.lifecycle import InternalError, Interrupted
+    from febed.solver import RunFailure
+
+    if MPI.COMM_WORLD.size == 1 or not isinstance(error, Exception) or hasattr(error, "alone"):
+        return bool(getattr(error, "alone", False))
+    agreed = (CaseError, MeshError, OutputError, UserError, CheckpointError, RunFailure, DEMFailure, Interrupted)
+    return not isinstance(error, (*agreed, InternalError))
 
 
 def _restart_target(case, restart: str, pf=None) -> tuple[Path, Path, dict]:
@@ -353,6 +373,13 @@ def main(argv: list[str] | None = None) -> int:
         signum = getattr(e, "signum", 2)
         _say(f"febed: stopped by {'Ctrl-C' if signum == 2 else e.args[0]} during start-up", err=True)
         return 128 + signum
+    except Exception as e:  # a bug: its traceback, then on several ranks the whole job ends if it was this rank's
+        if getattr(e, "alone", False) and MPI.COMM_WORLD.size > 1:
+            import traceback
+
+            traceback.print_exc()
+            _end_alone(e, 1)
+        raise
     finally:
         restore_signals()
 
@@ -401,13 +428,14 @@ def _main(args) -> int:
         return 128 + signum
     except CheckpointError as e:
         _say(f"febed: error: {e}", err=True)
-    except MemoryError:
+    except MemoryError as e:
         _say("febed: the run failed: out of memory (`febed check` estimates what a case needs)", err=True)
-        return 3
+        return _end_alone(e, 3)
     except ValueError as e:  # a value the solvers refuse, with their message (-v shows the traceback)
         if getattr(args, "verbose", False):
             raise
         _say(f"febed: error: {e}", err=True)
+        return _end_alone(e, 2)
     return 2
 
 

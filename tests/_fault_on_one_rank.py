@@ -2,7 +2,8 @@
 
 `python _fault_on_one_rank.py KIND ARGS...`, under `mpirun -n 2` (tests/test_failures.py). KIND `bug`: the
 deposit raises an IndexError; `blow-up`: a particle's velocity becomes NaN and the deposit raises a ValueError
-(a blow-up surfacing inside a kernel). The other rank goes on into the step's collective calls.
+(a blow-up surfacing inside a kernel). The other rank goes on into the step's collective calls. KIND
+`start-up`: building the coupled solver raises a RuntimeError on that rank, while the other builds its own.
 """
 
 import math
@@ -20,6 +21,8 @@ solvers, calls = [], []
 
 
 def init(self, *args, **kwargs):
+    if kind == "start-up" and MPI.COMM_WORLD.rank == MPI.COMM_WORLD.size - 1:
+        raise RuntimeError("injected on one rank while the solver is built")
     real_init(self, *args, **kwargs)
     solvers.append(self)
 

@@ -118,13 +118,14 @@ def test_an_error_raised_by_a_blow_up_is_a_failure_of_the_simulation(tmp_path, c
     assert len(said) == 1 and message.startswith(said[0].removeprefix("febed: the run failed: ")), err
 
 
-@pytest.mark.parametrize("kind", ["bug", "blow-up"])
+@pytest.mark.parametrize("kind", ["bug", "blow-up", "start-up"])
 def test_a_fault_on_one_rank_ends_every_rank(tmp_path, kind):
     """Under `mpirun -n 2` rank 1 alone meets a bug, or a blow-up inside a kernel, while rank 0 goes on into the
-    step's collective calls (tests/_fault_on_one_rank.py).
+    step's collective calls, or a bug while the solver is built (tests/_fault_on_one_rank.py).
 
-    The job ends with status 3 (neither rank left waiting for the other, not even in its exit, where PETSc frees
-    its objects collectively); rank 1 writes status.json and its message into febed.log itself.
+    The job ends with status 3 (1 for the bug at start-up, as any bug outside a run's steps), neither rank left
+    waiting for the other, not even in its exit, where PETSc frees its objects collectively; rank 1 writes
+    status.json and its message into febed.log itself.
     """
     import shutil
     import subprocess
@@ -138,11 +139,14 @@ def test_a_fault_on_one_rank_ends_every_rank(tmp_path, kind):
     cmd = [*MPIRUN, sys.executable, str(ROOT / "tests" / "_fault_on_one_rank.py"), kind, "run", str(CASE),
            "--set", f"output.directory={out}", "--set", f"run.end_time={END}"]  # fmt: skip
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=clean_env())
-    assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]
+    assert r.returncode == (1 if kind == "start-up" else 3), r.stdout[-2000:] + r.stderr[-2000:]
     info = json.loads((out / "status.json").read_text())
     log = (out / "febed.log").read_text()
     assert info["state"] == "failed" and f"[rank 1] run failed: {info['message']}" in log
-    if kind == "bug":
+    if kind == "start-up":
+        assert info["message"] == "injected on one rank while the solver is built" and info["step"] == 0
+        assert "Traceback" in r.stderr
+    elif kind == "bug":
         assert info["message"].startswith("internal error in the gas step from t = ")
         assert "IndexError: index 9 is out of bounds" in info["message"]
         assert "Traceback" in log and "injected on one rank" in log

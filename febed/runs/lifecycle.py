@@ -536,13 +536,13 @@ def stopped_at_once(run, error: KeyboardInterrupt) -> Interrupted:
 
 
 def record_exit(outdir, log, error: BaseException, end: float, t: float = 0.0, step: int = 0,
-                restart: bool = False) -> None:  # fmt: skip
+                restart: bool = False, alone: bool = False) -> None:  # fmt: skip
     """Record in status.json and the log an error that ended `febed run` before its run recorded anything.
 
     Errors met during start-up (building the mesh, the bed, the solver; opening the output files) or a stop
     signal then (a KeyboardInterrupt: Ctrl-C, or another stop signal carrying `signum`) would otherwise leave
     no status.json (`febed status`: "unknown") and nothing in febed.log. Nothing is done if the run already
-    recorded how it ended (rank 0 writes).
+    recorded how it ended (rank 0 writes; with `alone`, an error possibly met by this rank only, this rank).
     """
     if last_state(outdir) not in (None, "running"):
         return
@@ -557,8 +557,10 @@ def record_exit(outdir, log, error: BaseException, end: float, t: float = 0.0, s
         state = "failed"
         known = isinstance(error, (RunFailure, ValueError, OSError, RuntimeError, MemoryError))
         message = str(error) if known and str(error) else f"{type(error).__name__}: {error}"
+        if alone:
+            log_file_on_this_rank(log, outdir)
         log.error(f"run failed: {message}")
-    write_run_status(outdir, state, t, end, step, message, collective=False)
+    write_run_status(outdir, state, t, end, step, message, MPI.COMM_SELF if alone else MPI.COMM_WORLD, False)
 
 
 def catch_stop_signals(run, after: str, dem=None):
