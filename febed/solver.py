@@ -209,7 +209,7 @@ class CoupledSolver:
         self.n_sub = max(1, math.ceil(dt / self.dem.dt * (1 - 1e-12)))
         if self.fixed:  # the particles do not move, but the gas they see does: their K_p, F_P for this step
             t0 = time.perf_counter()
-            self._fluid(relocate=not self.located)
+            self._fluid(relocate=self._must_relocate())
             self.timers.coupling += time.perf_counter() - t0
         else:
             self.advance_particles(dt, self.n_sub)  # times itself (DEM / coupling)
@@ -239,8 +239,9 @@ class CoupledSolver:
         """
         t0 = time.perf_counter()
         tau = self._fluid_tau  # the record `group_events` made from this gas, if the particles are unchanged since
-        if tau is None or not self.located:
-            tau = self._fluid(relocate=not self.located)  # min_p m_p/K_p (inf without particles)
+        relocate = self._must_relocate()
+        if tau is None or relocate:
+            tau = self._fluid(relocate=relocate)  # min_p m_p/K_p (inf without particles)
         self._fluid_tau = None
         P = self.dem.particles
         if self.md.comm.size > 1:  # every rank steps the same chunks (the DEM exchanges ghosts per step)
@@ -290,6 +291,15 @@ class CoupledSolver:
         if dem.exchange is None and not dem._dirty:  # no event: the same rows, so the same record next step
             self._fluid_tau = tau
         self.timers.coupling += time.perf_counter() - t0
+
+    def _must_relocate(self) -> bool:
+        """Whether the particles must be located again, agreed over the ranks (collective).
+
+        Locating is collective with MPI (its migration check), and one rank's rows can change alone: PCPM events,
+        or the ghost rows they drop, on some ranks only. Then every rank locates its particles again.
+        """
+        stale = not self.located
+        return bool(self.md.comm.allreduce(stale, op=MPI.LOR)) if self.md.comm.size > 1 else stale
 
     @property
     def located(self) -> bool:

@@ -121,6 +121,30 @@ def test_particle_locations_are_current_exactly_when_the_rows_are_unchanged(tmp_
     assert s.located and s.coupler.cell.size == s.dem.particles.n_owned
 
 
+@pytest.mark.mpi
+def test_rows_changed_on_one_rank_are_located_again_on_every_rank(mpi_tmp_path, monkeypatch):
+    """PCPM events, and the ghost rows they drop, change the rows of some ranks only (`DEM.touch`). Locating the
+    particles is collective (its migration check), so at the next gas step every rank locates them again."""
+    comm = MPI.COMM_WORLD
+    case = box_case(
+        mpi_tmp_path, (0.01, 0.01, 0.03), 0.002, gas={"boundary": {"inlet": {"type": "inlet", "velocity": 0.1}}}
+    )
+    s = coupled(case, mpi_tmp_path, lattice((0, 0, 0), (0.01, 0.01, 0.006), 0.002), 1e-3, 2500.0)
+    s.step()
+    calls = []
+
+    def located_without_collectives(self):  # records each call; the rows did not really change
+        calls.append(self.dem.layout)
+        self._located = self.dem.layout
+
+    monkeypatch.setattr(CoupledSolver, "locate_particles", located_without_collectives)
+    if comm.rank == comm.size - 1:
+        s.dem.touch()
+    s.step()
+    # before the fluid forces of the DEM sub-steps, and after them for the projection: on every rank
+    assert comm.allgather(len(calls)) == [2] * comm.size
+
+
 def schiller_naumann_terminal(d, rho_p, rho_g, mu, g):
     """Terminal velocity of a sphere (m/s): (ρ_p − ρ_g) V g = 3π μ d v (1 + 0.15 Re^0.687), by bisection."""
     lo, hi = 0.0, (rho_p - rho_g) * g * d * d / (18 * mu)
