@@ -518,10 +518,17 @@ class CoupledSolver:
         return self.gas.grad_p
 
     def _last_exchange(self):
-        """K_p and F_P (views) the particles were given for this step, in the current row order (fresh if missing)."""
+        """K_p and F_P (views) the particles were given for this step, in the current row order (fresh if missing).
+
+        Made fresh on every rank if any rank misses some (`_fluid` is collective): e.g. a checkpoint's rows that
+        PCPM events added after the record was made, now spread over the ranks.
+        """
         P = self.dem.particles
         n = P.n_owned
-        if not (FLUID in P.aux_names and _all_set(P.aux(FLUID)[:n], RECORD_SET)):
+        missing = not (FLUID in P.aux_names and _all_set(P.aux(FLUID)[:n], RECORD_SET))
+        if self.md.comm.size > 1:
+            missing = self.md.comm.allreduce(missing, op=MPI.LOR)
+        if missing:
             self._fluid(relocate=False)
         a = P.aux(FLUID)[:n]
         return a[:, RECORD_K], a[:, RECORD_FP]

@@ -145,6 +145,34 @@ def test_rows_changed_on_one_rank_are_located_again_on_every_rank(mpi_tmp_path, 
     assert comm.allgather(len(calls)) == [2] * comm.size
 
 
+@pytest.mark.mpi
+def test_a_fluid_record_missing_on_one_rank_is_made_again_on_every_rank(mpi_tmp_path, monkeypatch):
+    """Rows added without their fluid record (PCPM children restarted on other ranks) may sit on one rank only;
+    the projection then makes the record again, which is collective, on every rank."""
+    from febed.coupling.drag import RECORD_SET
+    from febed.solver import FLUID
+
+    comm = MPI.COMM_WORLD
+    case = box_case(
+        mpi_tmp_path, (0.01, 0.01, 0.03), 0.002, gas={"boundary": {"inlet": {"type": "inlet", "velocity": 0.1}}}
+    )
+    s = coupled(case, mpi_tmp_path, lattice((0, 0, 0), (0.01, 0.01, 0.006), 0.002), 1e-3, 2500.0)
+    s.step()
+    calls = []
+
+    def record_without_collectives(self, relocate, drag=None):  # marks the rows filled, keeps their values
+        calls.append(relocate)
+        self.dem.particles.aux(FLUID)[:, RECORD_SET] = 1.0
+        return math.inf
+
+    monkeypatch.setattr(CoupledSolver, "_fluid", record_without_collectives)
+    P = s.dem.particles
+    if comm.rank == comm.size - 1 and P.n_owned:
+        P.aux(FLUID)[0, RECORD_SET] = 0.0
+    s.project()
+    assert comm.allgather(calls) == [[False]] * comm.size
+
+
 def schiller_naumann_terminal(d, rho_p, rho_g, mu, g):
     """Terminal velocity of a sphere (m/s): (ρ_p − ρ_g) V g = 3π μ d v (1 + 0.15 Re^0.687), by bisection."""
     lo, hi = 0.0, (rho_p - rho_g) * g * d * d / (18 * mu)
