@@ -173,6 +173,22 @@ def test_a_fluid_record_missing_on_one_rank_is_made_again_on_every_rank(mpi_tmp_
     assert comm.allgather(calls) == [[False]] * comm.size
 
 
+@pytest.mark.mpi
+def test_a_checkpoint_of_another_mesh_is_refused_on_every_rank(mpi_tmp_path):
+    """A node without its counterpart in the checkpoint may be on one rank only: every rank raises the error."""
+    from febed.io.checkpoint import CheckpointError
+    from febed.io.state import gas_arrays, restore_gas
+
+    comm = MPI.COMM_WORLD
+    case = box_case(mpi_tmp_path, (0.01, 0.01, 0.03), 0.002)
+    gas = VANSSolver.from_case(case, load_case_mesh(case, cache_dir=mpi_tmp_path / "mesh"))
+    saved = comm.bcast(gas_arrays(gas) if comm.rank == 0 else None)  # rank 0's nodes only
+    if comm.size == 1:
+        saved["gas/x"][0] += 1e-4  # a node moved by 0.1 mm
+    with pytest.raises(CheckpointError, match="has no counterpart in the checkpoint"):
+        restore_gas(gas, saved, 0.0, comm)
+
+
 def schiller_naumann_terminal(d, rho_p, rho_g, mu, g):
     """Terminal velocity of a sphere (m/s): (ρ_p − ρ_g) V g = 3π μ d v (1 + 0.15 Re^0.687), by bisection."""
     lo, hi = 0.0, (rho_p - rho_g) * g * d * d / (18 * mu)

@@ -13,7 +13,7 @@ from mpi4py import MPI
 
 import numpy as np
 
-from febed.io.checkpoint import gather_rows, match_nodes
+from febed.io.checkpoint import CheckpointError, gather_rows, match_nodes
 
 _ROWS = "p_"  # DEM state keys holding one row per particle
 _HISTORY = ("saved_keys", "saved_vals", "saved_wkeys", "saved_wvals")
@@ -31,7 +31,14 @@ def restore_gas(gas, arrays: dict[str, np.ndarray], t: float, comm=MPI.COMM_WORL
     n = gas.n_owned
     width = float(np.min(gas.ops.width[:n], initial=np.inf))
     h = comm.allreduce(width, op=MPI.MIN)
-    idx = match_nodes(arrays["gas/x"], gas.x[:n], h)
+    try:
+        idx, problem = match_nodes(arrays["gas/x"], gas.x[:n], h), None
+    except CheckpointError as e:  # maybe on this rank only: every rank raises it (the others would go on)
+        idx, problem = None, str(e)
+    if comm.size > 1:
+        problem = next((p for p in comm.allgather(problem) if p), None)
+    if problem:
+        raise CheckpointError(problem)
     gas.set_state({k[4:]: v[idx] for k, v in arrays.items() if k.startswith("gas/") and k != "gas/x"}, t)
 
 
