@@ -47,7 +47,7 @@ class FieldWriter:
     def __init__(self, path: str | Path, mesh, functions: dict, comm=MPI.COMM_WORLD):
         """Write the mesh into the folder beside `path` (.xdmf) and an index without times.
 
-        `functions` maps names to Functions. Raises OSError (on the ranks where it failed) if a file cannot be written.
+        `functions` maps names to Functions. Raises OSError if a file cannot be written (its folder: on every rank).
         """
         path = Path(path)
         if path.suffix != ".xdmf":
@@ -63,11 +63,17 @@ class FieldWriter:
         self.count = 0
         self._series: dict[str, ET.Element] = {}  # rank 0: each function's temporal collection
         self._mesh_grid = None
+        problem = None
         if comm.rank == 0:
-            self.folder.mkdir(parents=True, exist_ok=True)
-            for old in self.folder.glob("[0-9]*.h5"):  # a series of this name that a restart replaces
-                old.unlink()
-        comm.barrier()
+            try:
+                self.folder.mkdir(parents=True, exist_ok=True)
+                for old in self.folder.glob("[0-9]*.h5"):  # a series of this name that a restart replaces
+                    old.unlink()
+            except OSError as e:
+                problem = e
+        problem = comm.bcast(problem, root=0)  # every rank waits for the folder, and raises rank 0's error
+        if problem is not None:
+            raise problem
         root = self._write_file("mesh", lambda file: file.write_mesh(mesh))
         if root is not None:
             self._mesh_grid = root.find("Domain/Grid")

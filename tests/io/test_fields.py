@@ -46,6 +46,22 @@ def dataset(folder, text):
 
 
 @pytest.mark.mpi
+def test_a_folder_rank_0_cannot_make_stops_every_rank(mpi_tmp_path):
+    """Rank 0 alone makes the series' folder: its error reaches every rank as one OutputFailure (no hang)."""
+    from febed.runs.lifecycle import OutputFailure, guarded_write
+
+    comm = MPI.COMM_WORLD
+    mesh = dolfinx.mesh.create_unit_square(comm, 2, 2, dolfinx.mesh.CellType.quadrilateral)
+    p = dolfinx.fem.Function(dolfinx.fem.FunctionSpace(mesh, ("Q", 1)))
+    if comm.rank == 0:
+        (mpi_tmp_path / "fields").write_text("a file where the folder should be\n")
+    comm.barrier()
+    path = mpi_tmp_path / "fields.xdmf"
+    with pytest.raises(OutputFailure, match="fields"):
+        guarded_write(comm, path, FieldWriter, path, mesh, {"p": p}, comm)
+
+
+@pytest.mark.mpi
 def test_each_time_is_a_file_of_its_own_and_the_index_names_its_values(mpi_tmp_path):
     comm = MPI.COMM_WORLD
     mesh = dolfinx.mesh.create_unit_square(comm, 6, 4, dolfinx.mesh.CellType.quadrilateral)
