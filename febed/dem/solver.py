@@ -415,8 +415,11 @@ class DEM:
     # ------------------------------------------------------------------ stepping
 
     def compute_forces(self, dt_eval: float = 0.0, dt_store: float = 0.0) -> float:
-        """Evaluate force and torque of every particle now (history kept); returns the largest relative overlap."""
-        if self._dirty:
+        """Evaluate force and torque of every particle now (history kept); returns the largest relative overlap.
+
+        Collective with MPI (a rebuild if any rank's rows changed); the ghost rows must be current.
+        """
+        if self.exchange.any(self._dirty) if self.exchange is not None else self._dirty:
             self.rebuild()
         b, lists = self.bodies(), self.lists()
         w = compute_forces(b, b.vel, b.omega, lists, lists.hist, lists.whist, self.walls.geometry, self.model(),
