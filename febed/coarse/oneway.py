@@ -45,6 +45,8 @@ class OneWay:
         The defaults and allowed values of `drag`, `integration` and `drag_factor` are those of the case keys
         `coupling.drag`, `prescribed_gas.integration` and `prescribed_gas.drag_factor`.
         """
+        if getattr(dem, "exchange", None) is not None:  # its windows and sub-steps are this process's own
+            raise ValueError("OneWay: the DEM has an MPI exchange attached; the one-way driver runs on one process")
         for name, key, value in (("integration", "prescribed_gas.integration", integration),
                                  ("drag_factor", "prescribed_gas.drag_factor", drag_factor)):  # fmt: skip
             _, err = param(key).check(value)

@@ -79,6 +79,19 @@ def test_scg_helpers_and_errors():
         make_prescribed_gas("function", function="nocolon")
 
 
+@pytest.mark.mpi
+def test_the_one_way_driver_refuses_a_distributed_dem():
+    """Its windows and sub-steps follow this process's particles: a DEM with an exchange is refused."""
+    from mpi4py import MPI
+
+    from febed.parallel import BoxExchange
+
+    dem = DEM(DEMParams(stiffness=1.0, gravity=0.0))
+    dem.attach_exchange(BoxExchange(MPI.COMM_WORLD))
+    with pytest.raises(ValueError, match="runs on one process"):
+        OneWay(dem, make_prescribed_gas("uniform", velocity=[0.0, 0.0, 1.0]))
+
+
 def test_vortex_field_and_user_function(tmp_path):
     gas = make_prescribed_gas("vortex", omega=2.0, inflow_ratio=5.0, center=(1.0, 0.0), outlet_radius=0.1,
                               outlet_velocity=1.0)  # fmt: skip
