@@ -98,8 +98,8 @@ def portable(dem: dict) -> dict:
     if "keyed_keys" in dem and "saved_keys" not in dem:  # a one-rank checkpoint: its history keyed by gids
         out.update({f"saved_{k[6:]}": dem[k] for k in dem if k.startswith("keyed_")})
         out["has_saved"] = 1
-    order = np.argsort(out["p_gid"], kind="stable")
-    out.update({k: np.asarray(v)[order] for k, v in out.items() if k.startswith(_ROWS) and k != "p_next_gid"})
+    order = np.argsort(out["p_gid"], kind="stable")  # the auxiliary arrays' rows (aux_*) follow their particles
+    out.update({k: np.asarray(v)[order] for k, v in out.items() if k.startswith((_ROWS, "aux_")) and k != "p_next_gid"})
     out["lists_valid"], out["dirty"], out["forces_valid"] = 0, 1, 0
     out["pos_ref"] = np.array(out["p_pos"], copy=True)  # lists are rebuilt at the first step
     return out
