@@ -44,6 +44,14 @@ def lattice(lo, hi, spacing):
     return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
 
 
+def lattice_bed(tmp_path):
+    """A lattice of 1 mm beads 6 mm deep at the bottom of a 1 x 1 x 3 cm box, air at 0.1 m/s (not stepped)."""
+    case = box_case(
+        tmp_path, (0.01, 0.01, 0.03), 0.002, gas={"boundary": {"inlet": {"type": "inlet", "velocity": 0.1}}}
+    )
+    return coupled(case, tmp_path, lattice((0, 0, 0), (0.01, 0.01, 0.006), 0.002), 1e-3, 2500.0)
+
+
 def exchange_bed(tmp_path, coupling, **sections):
     """729 beads of 1 mm in a 1 cm cube at the bottom of a 1 x 1 x 3 cm box, air at 0.3 m/s, after 5 gas steps."""
     case = box_case(
@@ -105,10 +113,7 @@ def test_nodal_pressure_gradient_reaction_is_exactly_minus_what_the_particles_re
 
 
 def test_particle_locations_are_current_exactly_when_the_rows_are_unchanged(tmp_path):
-    case = box_case(
-        tmp_path, (0.01, 0.01, 0.03), 0.002, gas={"boundary": {"inlet": {"type": "inlet", "velocity": 0.1}}}
-    )
-    s = coupled(case, tmp_path, lattice((0, 0, 0), (0.01, 0.01, 0.006), 0.002), 1e-3, 2500.0)
+    s = lattice_bed(tmp_path)
     s.step()
     assert s.located  # the projection located the particles at the end of the step
     s.dem.advance(1)
@@ -126,10 +131,7 @@ def test_rows_changed_on_one_rank_are_located_again_on_every_rank(mpi_tmp_path, 
     """PCPM events, and the ghost rows they drop, change the rows of some ranks only (`DEM.touch`). Locating the
     particles is collective (its migration check), so at the next gas step every rank locates them again."""
     comm = MPI.COMM_WORLD
-    case = box_case(
-        mpi_tmp_path, (0.01, 0.01, 0.03), 0.002, gas={"boundary": {"inlet": {"type": "inlet", "velocity": 0.1}}}
-    )
-    s = coupled(case, mpi_tmp_path, lattice((0, 0, 0), (0.01, 0.01, 0.006), 0.002), 1e-3, 2500.0)
+    s = lattice_bed(mpi_tmp_path)
     s.step()
     calls = []
 
@@ -153,10 +155,7 @@ def test_a_fluid_record_missing_on_one_rank_is_made_again_on_every_rank(mpi_tmp_
     from febed.solver import FLUID
 
     comm = MPI.COMM_WORLD
-    case = box_case(
-        mpi_tmp_path, (0.01, 0.01, 0.03), 0.002, gas={"boundary": {"inlet": {"type": "inlet", "velocity": 0.1}}}
-    )
-    s = coupled(case, mpi_tmp_path, lattice((0, 0, 0), (0.01, 0.01, 0.006), 0.002), 1e-3, 2500.0)
+    s = lattice_bed(mpi_tmp_path)
     s.step()
     calls = []
 
