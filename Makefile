@@ -48,11 +48,13 @@ test-mpi: setup
 	$(MPIRUN) $(PY) -m pytest -m "mpi and not slow" -q --color=no
 	$(MPIEXEC) -n 4 $(PY) -m pytest -m "mpi and not slow" -q --color=no tests/parallel/test_many_ranks.py
 
-# The distributed particle tests on 3, 4 and 8 ranks (oversubscribed), and the 4 -> 2 -> 1 restart through `febed run`.
+# The distributed particle tests on 3, 4 and 8 ranks (oversubscribed), PCPM events across the partitions among
+# them, and the 4 -> 2 -> 1 restart through `febed run`.
 test-ranks: setup
-	for n in 3 4; do $(MPIEXEC) -n $$n $(PY) -m pytest -m mpi -q --color=no tests/parallel || exit 1; done
+	for n in 3 4; do $(MPIEXEC) -n $$n $(PY) -m pytest -m mpi -q --color=no tests/parallel tests/coarse/test_pcpm_mpi.py \
+		|| exit 1; done
 	$(MPIEXEC) -n 8 $(PY) -m pytest -m mpi -q --color=no tests/parallel/test_mpi_dem.py tests/parallel/test_many_ranks.py \
-		tests/parallel/test_mpi_owner_coupling.py
+		tests/parallel/test_mpi_owner_coupling.py tests/coarse/test_pcpm_mpi.py
 	$(PYTEST) -m slow tests/parallel/test_many_ranks.py
 
 test-all: setup test-ranks

@@ -1,10 +1,10 @@
-"""PCPM crush and merge on distributed particles (serially and under `mpirun -n 2`).
+"""PCPM crush and merge on distributed particles (serially, under `mpirun -n 2`, and on 3, 4 and 8 ranks).
 
-Groups packed in a box split into two z slabs, with events forced near the partition plane: the originals and
+Groups packed in a box split into z slabs, with events forced near the other ranks' groups: the originals and
 the momentum are conserved over all ranks, gids stay unique, and no group placed by an event overlaps any
-other group (on any rank) beyond the tolerance — the other rank's groups are obstacles, and the two ranks take
-turns at the partition. The same with the groups owned by boxes of equal work (`BoxExchange`), the events'
-energy measured as in a run (a collective rebuild after the events).
+other group (on any rank) beyond the tolerance — the other ranks' groups are obstacles, and the ranks take
+turns at the partition, each once every `size` evaluations. The same with the groups owned by boxes of equal
+work (`BoxExchange`), the events' energy measured as in a run (a collective rebuild after the events).
 """
 
 from mpi4py import MPI
@@ -20,6 +20,18 @@ from febed.parallel import BoxExchange, ParticleExchange, slab_partitioner
 pytestmark = pytest.mark.mpi
 COMM = MPI.COMM_WORLD
 DO, RHO, L, TOL = 1e-3, 2500.0, 0.012, 0.05
+
+
+def near_other_ranks(P, reach=3 * DO):
+    """Owned groups within `reach` of a group owned by another rank (serially: of the plane z = L)."""
+    n = P.n_owned
+    if COMM.size == 1:
+        return np.abs(P.pos[:n, 2] - L) < reach
+    parts = COMM.allgather(P.pos[:n])
+    others = np.concatenate([x for r, x in enumerate(parts) if r != COMM.rank])
+    if n == 0 or others.size == 0:
+        return np.zeros(n, bool)
+    return np.linalg.norm(P.pos[:n, None] - others[None], axis=2).min(axis=1) < reach
 
 
 def gathered(P):
@@ -50,13 +62,14 @@ def test_events_across_the_partition_conserve_and_do_not_overlap(min_group, kind
     P = dem.particles
     gid0, _, _, n0, p0 = gathered(P)
     crushed = merged = near = 0
-    for k in range(16):
+    turns = max(COMM.size, 2)  # a group near another rank's takes part only on its rank's turn
+    for k in range(12 * turns):
         dem.advance(2, dem.dt)  # refreshes the ghosts
         old = set(P.gid[: P.n_owned].tolist())
         p_before = gathered(P)[4].sum(axis=0)  # the walls change the momentum between evaluations, events do not
         n = P.n_owned
-        at_plane = np.abs(P.pos[:n, 2] - L) < 3 * DO
-        crush = k % 4 < 2  # two crush evaluations, then two merge ones: each rank has a turn of each
+        at_plane = near_other_ranks(P)
+        crush = (k // turns) % 2 == 0  # crush evaluations, then merge ones: each rank has a turn of each
         want = at_plane & (P.n_orig[:n] > min_group) if crush else np.zeros(n, bool)
         d_cl = 1.3 * DO if min_group == 1.0 else 0.6 * P.diameter[:n]
         s = gd.apply(dem, np.where(want, d_cl, NO_CRUSH if crush else 10 * DO))
@@ -64,7 +77,7 @@ def test_events_across_the_partition_conserve_and_do_not_overlap(min_group, kind
         merged += COMM.allreduce(s.merged)
         n = P.n_owned
         new = np.array([P.gid[i] not in old for i in range(n)], dtype=bool)
-        near += COMM.allreduce(int(np.sum(new & (np.abs(P.pos[:n, 2] - L) < 3 * DO))))
+        near += COMM.allreduce(int(np.sum(new & near_other_ranks(P))))
         gid, x, d, no, mom = gathered(P)
         is_new = np.concatenate(COMM.allgather(new))
         assert np.unique(gid).size == gid.size  # no gid lost or duplicated
