@@ -198,4 +198,5 @@ def test_gas_run_failure_stops_with_message_and_last_good_state(mpi_tmp_path, wh
         arrays, meta = read_checkpoint(list_checkpoints(mpi_tmp_path / "checkpoints")[-1])
         assert all(np.isfinite(v).all() for k, v in arrays.items() if k.startswith("gas/"))
         if what == "nan":
-            assert meta["step"] == 10  # kept every GOOD_EVERY = 10 steps
+            # kept every GOOD_EVERY = 10 steps, and at a progress line (by the wall clock): never step 13's
+            assert 10 <= meta["step"] <= 12
