@@ -215,9 +215,10 @@ class CoupledSolver:
             self.advance_particles(dt, self.n_sub)  # times itself (DEM / coupling)
         t1 = time.perf_counter()
         eps, K, Kv, force = self.project()
+        share = eps if self._nodal_reaction() else None  # the gas carries −ε∇p^{n+1} (VANSSolver: the share)
         t2 = time.perf_counter()
         try:
-            self.last_gas = self.gas.step(dt, eps=eps, K=K, Kv=Kv, force=force)
+            self.last_gas = self.gas.step(dt, eps=eps, K=K, Kv=Kv, force=force, pressure_share=share)
         except PressureSolveError as e:  # raised on every rank (the Krylov solve is collective)
             self._failure = self._failure or self._local_problem()  # name the cause if the particles show it
             self._failure = self._failure or f"gas step from t = {self.t:.6g} s (dt = {dt:.3g} s): {e}"
@@ -541,10 +542,11 @@ class CoupledSolver:
         coefficients, −Σ_p ω_{p,i} K_p (u_i − v_p) implicitly and −Σ_p ω_{p,i} F_P,p / ΔV_i explicitly: with
         the drag, the gas receives minus every fluid force the particles receive (seed 001 eq 29). It also
         saves a second interpolation pass per gas step. With `coupling.pressure_gradient_reaction = "nodal"`
-        the explicit force is instead (1 − ε_i)∇p_i from the gas's own nodal ∇p^n, so that the gas carries
-        −ε∇p node by node, consistent with the ε and K it is given, while the particles interpolate ∇p^n
-        averaged by the filter's transpose (`_particles_grad_p`): the totals agree to round-off for particles
-        at rest (docs/theory.md, "Pressure-gradient force").
+        the explicit force is instead (1 − ε_i)∇p_i from the gas's own nodal ∇p^n, and the gas step is given
+        the pressure's share ε (`step`), so that the gas carries −ε∇p^{n+1} node by node, consistent with the ε
+        and K it is given, while the particles interpolate ∇p^n averaged by the filter's transpose
+        (`_particles_grad_p`): the totals agree to round-off for particles at rest in a steady flow
+        (docs/theory.md, "Pressure-gradient force").
         """
         self.locate_particles()
         K, f_p = self._last_exchange()

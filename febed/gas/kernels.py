@@ -268,7 +268,7 @@ def pressure_rhs(div, mass, eps, eps_old, dt, out):  # pragma: no cover
 def correct(q_star, g_phi, mass, w, rho_dt, gp, q, grad_p):  # pragma: no cover
     """Correction (seed 001 eq 37) on owned rows: q = q* − w G φ/ΔV; G p += ρ/Δt G φ; ∇p = G p/ΔV.
 
-    w = 1/(1 + K Δt/(ρ ε)) with the drag-weighted projection, 1 without.
+    w = s/(1 + K Δt/(ρ ε)) with the drag-weighted projection (s the pressure's share, 1 by default), 1 without.
     """
     for i in range(g_phi.shape[0]):
         c = w[i] / mass[i]
@@ -279,12 +279,15 @@ def correct(q_star, g_phi, mass, w, rho_dt, gp, q, grad_p):  # pragma: no cover
 
 
 @njit(cache=True)
-def repredict(q_star, g_phi, mass, eps, K, rho, dt):  # pragma: no cover
-    """q* −= G φ / (ΔV (1 + K Δt/(ρ ε))) on owned rows: `predictor_update` redone after p += ρ/Δt φ."""
+def repredict(q_star, g_phi, mass, c):  # pragma: no cover
+    """q* −= c G φ / ΔV on owned rows: `predictor_update` redone after p += ρ/Δt φ.
+
+    c = 1/(1 + K Δt/(ρ ε)), times the pressure's share s with the drag-weighted projection.
+    """
     for i in range(g_phi.shape[0]):
-        c = 1.0 / (mass[i] * (1.0 + K[i] * dt / (rho * eps[i])))
+        a = c[i] / mass[i]
         for d in range(g_phi.shape[1]):
-            q_star[i, d] -= c * g_phi[i, d]
+            q_star[i, d] -= a * g_phi[i, d]
 
 
 @njit(cache=True)

@@ -69,6 +69,15 @@ Model choices (and why):
   corrected pressure (only −∇p changed: q* −= G φ/(ΔV (1 + D)), no new convection or viscous terms) and
   solves the Poisson equation again, m times in all: the plain projection's lag becomes (D/(1 + D))^m per
   step. The mass balance below holds for the last pass.
+* **The pressure's share** (`step(..., pressure_share=s)`, with the drag-weighted projection): the momentum
+  carries s_i times this step's pressure change, −s_i ∇(p^{n+1} − p^n), with −∇p^n in the predictor and the
+  rest of the old gradient, (1 − s_i)∇p^n, in `force`. The projection takes s into its weights
+  (w_i = s_i/(1 + D_i) in L_w and in the correction), so the step ends with −s_i ∇p^{n+1} in the balance and
+  nothing lagged. The coupled solver's nodal pressure-gradient reaction gives s = ε (the gas carries
+  −ε∇p, model A). Passing (1 − ε)∇p^n in `force` alone would leave the share of the new gradient behind:
+  after a change, the pressure would approach its balance by a factor 1 − ε per step (0.55 in a packed bed),
+  one step's lag at the default gas step. With the constant Laplacian (`drag_weighted_projection = false`)
+  s is not used: the operator cannot carry it.
 * **LES**: Smagorinsky ν_t = (C_s Δ)² |S|, Δ = (mean volume of the cells around the node)^(1/d),
   |S| from the lumped nodal velocity gradient (switch `les`).
 * **Convective sub-steps** (`convection_substeps` = k, default 1): the predictor is made of m ≤ k explicit
@@ -198,10 +207,11 @@ class VANSSolver:
     * `VANSSolver(mesh_data, params, eps=1.0)` or `VANSSolver.from_case(case, mesh_data)`.
     * `Q`: the scalar nodal space (P1/Q1). Every nodal array is indexed by its local dofs, owned first
       (`n_owned`), then ghosts (`n_local` in all); `x` holds the node coordinates (n_local, 3).
-    * `step(dt, eps=None, K=None, Kv=None, force=None) -> StepInfo` advances t → t + dt with
-      `eps` = ε^{n+1} (n_local,) (ε^n is kept; None keeps ε), `K` the momentum-exchange coefficient
+    * `step(dt, eps=None, K=None, Kv=None, force=None, pressure_share=None) -> StepInfo` advances t → t + dt
+      with `eps` = ε^{n+1} (n_local,) (ε^n is kept; None keeps ε), `K` the momentum-exchange coefficient
       [kg/(m^3 s)] (n_local,) or scalar, `Kv` = K·v̄ [kg/(m^2 s^2)] (n_local, gdim), `force` an explicit
-      force density [N/m^3] (n_local, gdim). Arrays of length n_owned are accepted too.
+      force density [N/m^3] (n_local, gdim), `pressure_share` s_i the share of this step's pressure change
+      the momentum carries (default 1; see "The pressure's share"). Arrays of length n_owned are accepted too.
     * Outputs (read-only views, n_local rows): `u` interstitial velocity (n, gdim) [m/s], `q` = εu,
       `p` [Pa], `grad_p` (lumped L2 projection) [Pa/m], `eps`, `node_volume` = ∫φ_i dx [m^3].
     * `compute_dt()` from CFL/Fourier within [dt_min, dt_max]; `t` the current time; `functions()` the
@@ -255,7 +265,8 @@ class VANSSolver:
             self.Q, self.bc.pressure_dofs, self.bc.has_outlet, params.prefix + "pressure_",
             weighted=params.drag_weighted_projection,
         )  # fmt: skip
-        self._weights = dolfinx.fem.Function(self.Q)  # 1/(1 + K Δt/(ρ ε)) of the step (drag-weighted projection)
+        self._weights = dolfinx.fem.Function(self.Q)  # s/(1 + K Δt/(ρ ε)) of the step (drag-weighted projection)
+        self._share = None  # the pressure's share s of the step (owned nodes), None: 1
         self._weighted = False  # this step's projection is drag-weighted (a drag K was given)
         self._wall_c = None  # the walls' implicit shear coefficient of the step [kg/(m^3 s)] (None: no such walls)
         self._substeps = 1  # the step's explicit predictor sub-steps (`_substeps_for`)
@@ -505,7 +516,7 @@ class VANSSolver:
         return float(buf[0]), float(buf[1])
 
     # ------------------------------------------------------------------------------------------- step
-    def step(self, dt: float, eps=None, K=None, Kv=None, force=None) -> StepInfo:
+    def step(self, dt: float, eps=None, K=None, Kv=None, force=None, pressure_share=None) -> StepInfo:
         """Advance the gas from t to t + dt: predictor → pressure → correction (seed 001 eqs 35-39)."""
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0, got {dt!r}")
@@ -520,6 +531,12 @@ class VANSSolver:
         K = self._local(0.0 if K is None else K, "K", scalar_ok=True)
         Kv = self._local(0.0 if Kv is None else Kv, "Kv", scalar_ok=True, vector=True)
         force = self._local(0.0 if force is None else force, "force", scalar_ok=True, vector=True)
+        share = None
+        if pressure_share is not None and self._weighted:
+            share = self._local(pressure_share, "pressure_share", scalar_ok=True)[: self.n_owned]
+            if not np.all((share > 0.0) & (share <= 1.0)):
+                raise ValueError("pressure_share must lie in (0, 1] at every node")
+        self._share = share
         if self.params.drag_number > 0.0:
             n = self.n_owned
             self._drag_rates = K[:n] / (self.params.density * self.eps[:n])
@@ -543,10 +560,15 @@ class VANSSolver:
             t0 = time.perf_counter()
             if k > 0 and self._substeps > 1:  # the sub-stepped predictor's response to G φ
                 n = self.n_owned
-                r = self._response(K[:n], dt)
+                r = self._response(K[:n], dt) if share is None else share * self._response(K[:n], dt)
                 q_star[:n] -= (r / self.ops.mass[:n])[:, None] * self._g_phi
             elif k > 0:  # the predictor again, with the pressure the last pass corrected
-                kernels.repredict(q_star, self._g_phi, self.ops.mass, self.eps, K, self.params.density, dt)
+                n = self.n_owned
+                if self._weighted:  # the share of a pressure change the predictor passes on: w_i = s_i/(1 + D_i)
+                    c = self._weights.x.array[:n]
+                else:
+                    c = 1.0 / (1.0 + K[:n] * dt / (self.params.density * self.eps[:n]))
+                kernels.repredict(q_star, self._g_phi, self.ops.mass, c)
             if k > 0:
                 self.bc.apply_velocity(q_star, self.t + dt)
                 self._scratch_vector.x.scatter_forward()
@@ -600,6 +622,8 @@ class VANSSolver:
         if self._weighted:  # the predictor's implicit diagonal ρ/Δt + K/ε, relative to ρ/Δt
             n = self.n_owned
             w[:n] = self._response(K[:n], dt) if k > 1 else 1.0 / (1.0 + K[:n] * dt / (par.density * self.eps[:n]))
+            if self._share is not None:  # the momentum carries s_i of the pressure change
+                w[:n] *= self._share
             self._weights.x.scatter_forward()
             self.pressure.set_weights(w)
         elif self._wall_c is not None:  # the walls' implicit shear also damps their nodes' correction

@@ -141,6 +141,38 @@ def test_drag_weighted_projection_gives_darcys_pressure_in_one_step():
             assert imbalance < 1e-6
 
 
+@pytest.mark.mpi
+@pytest.mark.parametrize("passes", [1, 2])
+def test_pressure_share_carries_minus_eps_grad_p_with_nothing_lagged(passes):
+    # model A, as the coupled solver's nodal pressure-gradient reaction runs it: the momentum carries −ε∇p,
+    # given as −∇p^n in the predictor plus (1 − ε)∇p^n in `force`. With the pressure's share ε the first step
+    # balances the drag (∇p = −K U/ε², to the Poisson tolerance); with the force alone the new gradient's
+    # (1 − ε) part trails it, the error falling by a factor 1 − ε per step whatever the passes
+    md = channel(0.1, 0.02, 40, 8)
+    dt, D = 2e-4, 4.0
+    K = D * RHO * EPS / dt
+    target = -K * U / EPS**2
+    for share in (EPS, None):
+        s = channel_solver(md, U, rho=RHO, mu=MU, eps=EPS, slip=True, pressure_passes=passes)
+        s.q[:, 0] = U
+        s.set_void_fraction(EPS)
+        x = owned(s, s.x)
+        inner = (x[:, 0] > 0.02) & (x[:, 0] < 0.08)
+        errors = []
+        for _ in range(5):
+            info = s.step(dt, K=K, force=(1.0 - EPS) * s.grad_p, pressure_share=share)
+            local = np.abs(owned(s, s.grad_p)[inner, 0] - target).max(initial=0.0)
+            errors.append(MPI.COMM_WORLD.allreduce(float(local), op=MPI.MAX) / abs(target))
+            assert abs(info.mass_imbalance) < 1e-6 * RHO * info.inflow
+        if share is None:
+            assert errors[0] == pytest.approx(1.0 - EPS, rel=1e-3)
+            assert np.allclose(np.array(errors[1:]) / errors[:-1], 1.0 - EPS, rtol=1e-3), errors
+        else:
+            assert errors[0] < 1e-6 and max(errors) < 1e-4, errors  # then the flow's own slow development
+    with pytest.raises(ValueError, match="pressure_share"):
+        s.step(dt, K=K, pressure_share=0.0)
+
+
 def test_drag_weighted_projection_refuses_a_one_shot_weighted_solve():
     # the weighted solve has options of its own (prefix ..._pressure_weighted_): a direct factorisation of the
     # constant Laplacian is fine beside it, but a one-shot (preonly) weighted solve would apply a preconditioner
