@@ -43,6 +43,11 @@ def main() -> None:
     for k, (run, label, start) in enumerate(zip(args.runs, labels, starts, strict=True)):
         snaps = list_snapshots(run)
         t0 = max(start, snaps[0][0])
+        if snaps[-1][0] - t0 < args.split:
+            print(
+                f"{label}: its output from {t0:g} s ends at {snaps[-1][0]:g} s, short of one {args.split:g} s window; left out"
+            )
+            continue
         rows = split_window(run, (t0, snaps[-1][0]), args.split)
         print(f"{label}:")
         for r in rows:

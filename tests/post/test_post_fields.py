@@ -628,3 +628,8 @@ def test_loops_in_time_demo_draws_each_runs_windows(tmp_path, monkeypatch, capsy
         for r, ln in zip(split_window(run, (0.0, 0.6), 0.3), printed, strict=True):
             assert math.isfinite(r["bed_flux_centre/rhoUf"]) and f"centre {r['bed_flux_centre/rhoUf']:+6.1f}" in ln
     assert lines[2].split("centre")[1].split()[0] != lines[0].split("centre")[1].split()[0]  # twice the velocity
+    # a run whose output from its start is shorter than one window is left out, with a line saying so
+    monkeypatch.setattr(sys, "argv", [*argv[:6], "--from", "0", "0.5", *argv[8:]])
+    runpy.run_path(str(script), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "one:" in out and "two: its output from 0.5 s ends at 0.6 s, short of one 0.3 s window; left out" in out
