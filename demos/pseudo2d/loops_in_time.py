@@ -44,8 +44,8 @@ def main() -> None:
         snaps = list_snapshots(run)
         t0 = max(start, snaps[0][0])
         if snaps[-1][0] - t0 < args.split:
-            end = snaps[-1][0]
-            print(f"{label}: its output from {t0:g} s ends at {end:g} s, short of one {args.split:g} s window; left out")
+            end, dt = snaps[-1][0], args.split
+            print(f"{label}: its output from {t0:g} s ends at {end:g} s, short of one {dt:g} s window; left out")
             continue
         rows = split_window(run, (t0, snaps[-1][0]), args.split)
         print(f"{label}:")
