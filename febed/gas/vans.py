@@ -534,7 +534,7 @@ class VANSSolver:
         share = None
         if pressure_share is not None and self._weighted:
             share = self._local(pressure_share, "pressure_share", scalar_ok=True)[: self.n_owned]
-            if not np.all((share > 0.0) & (share <= 1.0)):
+            if not np.all((share > 0.0) & (share <= 1.0 + 1e-9)):  # ε from the coupling: 1 to round-off at most
                 raise ValueError("pressure_share must lie in (0, 1] at every node")
         self._share = share
         if self.params.drag_number > 0.0:
