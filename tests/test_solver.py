@@ -112,6 +112,28 @@ def test_nodal_pressure_gradient_reaction_is_exactly_minus_what_the_particles_re
         assert abs(plain[2] - given[2]) > 1e-4 * abs(given[2]), (plain, given)
 
 
+@pytest.mark.mpi
+@pytest.mark.parametrize("reaction", ["nodal", "projected"])
+def test_the_gas_step_carries_the_nodal_reactions_share_of_the_pressure(mpi_tmp_path, reaction):
+    """With the nodal reaction the gas step is given the pressure's share ε (the void fraction it is given), so
+    that it ends with −ε∇p^{n+1}; with the projected reaction the gas carries the whole −∇p (no share)."""
+    s = exchange_bed(mpi_tmp_path, {"pressure_gradient_reaction": reaction}, particles={"fixed": True})
+    seen = {}
+    step = s.gas.step
+
+    def spy(dt, **kw):
+        seen.update(kw)
+        return step(dt, **kw)
+
+    s.gas.step = spy
+    s.step()
+    if reaction == "nodal":
+        assert np.array_equal(seen["pressure_share"], seen["eps"])
+        assert MPI.COMM_WORLD.allreduce(float(seen["eps"].min()), op=MPI.MIN) < 0.9  # the bed's ε
+    else:
+        assert seen["pressure_share"] is None
+
+
 def test_particle_locations_are_current_exactly_when_the_rows_are_unchanged(tmp_path):
     s = lattice_bed(tmp_path)
     s.step()
