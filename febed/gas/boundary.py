@@ -11,7 +11,9 @@ Each named facet tag gets a `BoundarySpec`:
   inlet's, each with the share f_j = B_j^inlet·n / (B_j^inlet + B_j^wall)·n of its boundary weight that the
   inlet facets give (1/2 at the edge of a coplanar wall patch on a uniform mesh), and the velocity
   U_o f_j n: the gas then enters through exactly the inlet's facets (A_open = Σ_j f_j B_j·n is the inlet's
-  own area), so the gas-free strip over a wall patch is the patch itself on every mesh. At a corner with a
+  own area), so the gas-free strip over a wall patch is the patch itself on every mesh. Where two inlets meet,
+  the shared nodes carry both: each inlet gives them its speed times its own facets' share f_j, so each inlet's
+  gas enters through its facets and two inlets at one speed give a uniform inflow. At a corner with a
   wall-law wall across the inlet (a side wall) the weight is f_j times that wall's slide s_j = λ/δ (0 in
   clear gas, where the corner is held like the wall; 1 − 2δ/h in a packed bed), from the drag of each step.
   Where the inlet meets a strict no-slip wall (`wall_law = "no_slip"`), no-slip wins;
@@ -52,8 +54,8 @@ Each named facet tag gets a `BoundarySpec`:
 * `symmetry` — zero normal velocity, like a slip wall.
 
 Tags of the mesh that the specs do not name are walls with the porous wall law. Where tags meet, a node
-takes the first of: strict no-slip (but an inlet's `wins_over` walls yield to it), inlet, wall law,
-slip/symmetry, free. Pressure nodes are all the nodes of outlet facets.
+takes the first of: strict no-slip (but an inlet's `wins_over` walls yield to it), inlet (every inlet of the
+node, each adding its part), wall law, slip/symmetry, free. Pressure nodes are all the nodes of outlet facets.
 """
 
 from __future__ import annotations
@@ -178,20 +180,26 @@ class NodalBoundary:
         taken = self.noslip
         # inlets: nodes, inward normal, superficial speed factor A_total / A_open (discrete), and per node the
         # inlet's share f_j of its boundary weight along the normal: 1 inside the inlet, the inlet facets'
-        # share on an edge shared with a wall-law wall (so that Σ_j f_j B_j·n is the inlet's own area)
+        # share on an edge shared with a wall-law wall or another inlet (so that Σ_j f_j B_j·n is the inlet's
+        # own area); a node two inlets share carries both, each inlet adding its part (`apply_velocity`)
         self.inlets = []
         b_law = tag_normal_weights(mesh_data, Q, law)
         a_law = np.trace(normal_tensor_weights(mesh_data, Q, law), axis1=1, axis2=2) if law else np.zeros(ops.n_local)
-        for n, s in specs.items():
-            if s.type != "inlet":
-                continue
+        inlet_names = [n for n, s in specs.items() if s.type == "inlet"]
+        b_inlet = {n: tag_normal_weights(mesh_data, Q, [n]) for n in inlet_names}
+        inlet_nodes = []
+        for n in inlet_names:
+            s = specs[n]
             nodes = np.setdiff1d(dofs[n], taken)
-            taken = np.union1d(taken, nodes)
-            bw = tag_normal_weights(mesh_data, Q, [n])
+            inlet_nodes.append(nodes)
+            bw = b_inlet[n]
             normal = -np.array([comm.allreduce(bw[: ops.n_owned, d].sum(), op=MPI.SUM) for d in range(ops.gdim)])
             normal /= np.linalg.norm(normal)
             own_flux = -(bw[nodes] @ normal)  # ∫_inlet φ_j ds (projected on the inward normal)
             law_flux = -(b_law[nodes] @ normal)  # the coplanar wall-law facets' part beside it
+            for m in inlet_names:  # and the coplanar facets of the other inlets
+                if m != n:
+                    law_flux = law_flux + np.maximum(-(b_inlet[m][nodes] @ normal), 0.0)
             share = np.ones(nodes.size)
             shared = law_flux > 1e-12 * np.maximum(own_flux, 1e-300)
             share[shared] = own_flux[shared] / (own_flux[shared] + law_flux[shared])
@@ -201,6 +209,8 @@ class NodalBoundary:
             side_h = 2.0 * ops.mass[nodes[side]] / side_area[side]
             a_total = facet_area(mesh_data, n) + sum(facet_area(mesh_data, c) for c in s.cross_section_tags)
             self.inlets.append(_Inlet(nodes, normal, s, a_total, share, side, side_h, ops.bnormal, ops.n_owned, comm))
+        self.inlet_nodes = np.unique(np.concatenate(inlet_nodes)) if inlet_nodes else empty
+        taken = np.union1d(taken, self.inlet_nodes)
         self.law_nodes = np.setdiff1d(law_nodes, taken)
         taken = np.union1d(taken, self.law_nodes)
         slip_names = [n for n, s in specs.items() if s.type == "symmetry" or (s.type == "wall" and s.slip)]
@@ -251,8 +261,9 @@ class NodalBoundary:
     def apply_velocity(self, q: np.ndarray, t: float) -> None:
         """Impose the velocity conditions on the superficial nodal velocity q (n, gdim) in place, at time t."""
         kernels.zero_rows(q, self.noslip)
-        for inlet in self.inlets:
-            kernels.set_rows(q, inlet.nodes, inlet.speed(t) * inlet.a_total / inlet.a_open, inlet.weight, inlet.normal)
+        kernels.zero_rows(q, self.inlet_nodes)
+        for inlet in self.inlets:  # a node two inlets share gets both parts
+            kernels.add_rows(q, inlet.nodes, inlet.speed(t) * inlet.a_total / inlet.a_open, inlet.weight, inlet.normal)
         if self.slip.size:
             kernels.project_rows(q, self.slip, self.slip_proj)
 

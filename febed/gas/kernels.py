@@ -334,12 +334,12 @@ def zero_rows(q, rows):  # pragma: no cover
 
 
 @njit(cache=True)
-def set_rows(q, rows, scale, weight, normal):  # pragma: no cover
-    """q[rows[k]] = (scale w_k) n: an inlet's nodal superficial velocity."""
+def add_rows(q, rows, scale, weight, normal):  # pragma: no cover
+    """q[rows[k]] += (scale w_k) n: an inlet's part of its nodes' superficial velocity."""
     for k in range(rows.size):
         v = scale * weight[k]
         for d in range(q.shape[1]):
-            q[rows[k], d] = v * normal[d]
+            q[rows[k], d] += v * normal[d]
 
 
 @njit(cache=True)

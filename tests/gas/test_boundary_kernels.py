@@ -34,12 +34,18 @@ def test_velocity_rows(gdim):
     w, normal = rng.random(inlet.size), rng.normal(size=gdim)
     proj = rng.normal(size=(slip.size, gdim, gdim))
 
+    other = np.union1d(inlet[:10], _rows(rng, n, 20))  # a second inlet sharing ten of the first's rows
+    w2, normal2 = rng.random(other.size), rng.normal(size=gdim)
     ref = q.copy()
     ref[noslip] = 0.0
-    ref[inlet] = 1.7 * w[:, None] * normal
+    ref[np.union1d(inlet, other)] = 0.0
+    ref[inlet] += 1.7 * w[:, None] * normal
+    ref[other] += 0.3 * w2[:, None] * normal2
     out = q.copy()
     kernels.zero_rows(out, noslip)
-    kernels.set_rows(out, inlet, 1.7, w, normal)
+    kernels.zero_rows(out, np.union1d(inlet, other))
+    kernels.add_rows(out, inlet, 1.7, w, normal)
+    kernels.add_rows(out, other, 0.3, w2, normal2)
     assert np.array_equal(out, ref)
 
     via_einsum = ref.copy()

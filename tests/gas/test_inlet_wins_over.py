@@ -8,7 +8,8 @@ slide: not at all in clear gas (5 cells of 8 open), nearly fully in a packed bed
 strict no-slip walls (`wall_law = "no_slip"`) no-slip wins at the patch's two edge nodes and at the corners,
 and the gas enters through four cells' worth; with `wins_over = ("patch",)` the patch's edge nodes take the
 inlet's velocity and only the middle node is held still. In every case the discrete inflow is U_f over the
-whole cross-section (`cross_section_tags`), exactly.
+whole cross-section (`cross_section_tags`), exactly. Where the patch is a second inlet, the nodes the two
+share carry both inlets' gas, each by its facets' share.
 """
 
 from mpi4py import MPI
@@ -75,6 +76,39 @@ def test_patch_edge_nodes_and_the_inflow(mesh, law, wins):
     check(1.0 - 2.0 / np.sqrt(4.0 + kappa_h**2) if law == "brinkman" else 0.0)  # they slide as the walls do
     assert info.inflow == pytest.approx(U * H, rel=1e-12)
     assert abs(info.mass_imbalance) < 1e-6 * info.inflow
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("ratio", [1.0, 2.0])
+def test_two_inlets_share_their_edge_nodes(mesh, ratio):
+    """The patch is a second inlet at `ratio` U, the channel walls slip (the corners carry the inlet's gas): the
+    nodes the two inlets share carry both, half each, so each inlet's gas enters through its own facets. With
+    one speed the inflow is uniform, U at every inlet node (an inlet that took the shared nodes whole would give
+    6/7 U beside the patch and 2 U over it)."""
+    comm = MPI.COMM_WORLD
+    bcs = {
+        "inlet": BoundarySpec("inlet", velocity=U),
+        "patch": BoundarySpec("inlet", velocity=ratio * U),
+        "walls": BoundarySpec("wall", slip=True),
+        "outlet": BoundarySpec("outlet"),
+    }
+    s = VANSSolver(mesh, VANSParameters(gravity=0.0, density=1.0, viscosity=1e-3, boundaries=bcs), eps=1.0)
+    n = s.n_owned
+    x, y = s.x[:n, 0], s.x[:n, 1]
+    on_inlet = np.isclose(x, 0.0)
+
+    def at(yy):
+        m = on_inlet & np.isclose(y, yy)
+        return comm.allreduce(float(s.q[:n, 0][m][0]) if m.any() else -np.inf, op=MPI.MAX)
+
+    for yy in (0.0, 0.005, 0.01, 0.03, H):
+        assert at(yy) == pytest.approx(U, rel=1e-12), yy
+    assert at(0.02) == pytest.approx(ratio * U, rel=1e-12)
+    for yy in (0.015, 0.025):
+        assert at(yy) == pytest.approx(0.5 * (1.0 + ratio) * U, rel=1e-12), yy
+    assert np.all(np.abs(s.q[:n, 1][on_inlet]) < 1e-15)  # along the inward normal only
+    inflow = comm.allreduce(float(-(s.ops.bnormal[:n][on_inlet] * s.q[:n][on_inlet]).sum()), op=MPI.SUM)
+    assert inflow == pytest.approx(U * (H - 0.01) + ratio * U * 0.01, rel=1e-12)
 
 
 def test_wins_over_needs_an_inlet_and_a_no_slip_wall(mesh):
