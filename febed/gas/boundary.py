@@ -196,13 +196,13 @@ class NodalBoundary:
             normal = -np.array([comm.allreduce(bw[: ops.n_owned, d].sum(), op=MPI.SUM) for d in range(ops.gdim)])
             normal /= np.linalg.norm(normal)
             own_flux = -(bw[nodes] @ normal)  # ∫_inlet φ_j ds (projected on the inward normal)
-            law_flux = -(b_law[nodes] @ normal)  # the coplanar wall-law facets' part beside it
+            beside = -(b_law[nodes] @ normal)  # the coplanar wall-law facets' part beside it
             for m in inlet_names:  # and the coplanar facets of the other inlets
                 if m != n:
-                    law_flux = law_flux + np.maximum(-(b_inlet[m][nodes] @ normal), 0.0)
+                    beside = beside + np.maximum(-(b_inlet[m][nodes] @ normal), 0.0)
             share = np.ones(nodes.size)
-            shared = law_flux > 1e-12 * np.maximum(own_flux, 1e-300)
-            share[shared] = own_flux[shared] / (own_flux[shared] + law_flux[shared])
+            shared = beside > 1e-12 * np.maximum(own_flux, 1e-300)
+            share[shared] = own_flux[shared] / (own_flux[shared] + beside[shared])
             # corners with wall-law walls across the inlet (side walls): the wall area a and wall-normal size h
             side_area = a_law[nodes] - np.abs(b_law[nodes] @ normal)
             side = side_area > 1e-9 * np.maximum(a_law[nodes], 1e-300)
